@@ -1,0 +1,47 @@
+# Photos → textured mesh with DVR.  `make setup` once, then `make reconstruct IMAGES=dir`.
+PY      ?= .venv/bin/python
+IMAGES  ?=
+MASKS   ?=
+CONFIG  ?= configs/default.yaml
+OUT     ?= work/$(notdir $(abspath $(IMAGES)))
+WS      ?= $(OUT)
+FORCE   ?=
+ARGS    ?=
+
+.PHONY: setup test test-fast synth train mesh bench-core reconstruct clean-venv
+
+setup: .venv/.installed
+.venv/.installed: requirements.txt pyproject.toml
+	python3 -m venv .venv
+	.venv/bin/pip install -q --upgrade pip
+	.venv/bin/pip install -q torch==2.13.0
+	.venv/bin/pip install -q -r requirements.txt
+	.venv/bin/pip install -q --no-deps --no-build-isolation -e .
+	touch $@
+
+test: setup
+	$(PY) -m pytest -q
+
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
+
+# synthetic scene: make synth SCENE=configs/scenes/torus.yaml OUT=work/torus
+SCENE ?= configs/scenes/torus.yaml
+synth: setup
+	$(PY) -m pipeline synth $(SCENE) $(OUT)
+
+train: setup
+	$(PY) -m pipeline train $(WS) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+
+mesh: setup
+	$(PY) -m pipeline mesh $(WS) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+
+bench-core: setup
+	$(PY) bench/core.py
+
+# Stages available today: train, mesh (cameras/masks/depth/texture/report: see the open issues).
+reconstruct: setup
+	@test -n "$(IMAGES)" || (echo "usage: make reconstruct IMAGES=dir [MASKS=dir] [OUT=dir] [CONFIG=file]" && exit 2)
+	$(PY) -m pipeline train $(OUT) --config $(CONFIG)
+	$(PY) -m pipeline mesh $(OUT) --config $(CONFIG)
+	@echo "done: $(OUT)/mesh/clean.ply"

@@ -1,0 +1,174 @@
+"""Cameras and rays.
+
+Convention (see DESIGN.md): ``cameras.npz`` holds per view ``world_mat_i`` = K·[R|t] (world → pixels, SfM
+frame) and one ``scale_mat`` mapping the normalized frame (object inside the unit sphere) to the SfM frame.
+Pixel (row i, column j) has its centre at continuous coordinates (j + 0.5, i + 0.5): the COLMAP convention,
+and the one ``grid_sample(..., align_corners=False)`` uses, so colours looked up at projected points agree
+with the pixels rays are shot through. Ray depth is the Euclidean distance along a unit direction from the
+camera centre, in the normalized frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+@dataclass
+class Cameras:
+    """Pinhole cameras in the normalized frame (all arrays float64 numpy)."""
+
+    K: np.ndarray  # (N, 3, 3) intrinsics
+    R: np.ndarray  # (N, 3, 3) world(normalized) → camera rotation
+    t: np.ndarray  # (N, 3) translation
+    scale_mat: np.ndarray  # (4, 4) normalized → SfM frame
+
+    def __len__(self) -> int:
+        return len(self.K)
+
+    @property
+    def centers(self) -> np.ndarray:
+        """Camera centres in the normalized frame, (N, 3)."""
+        return -np.einsum("nji,nj->ni", self.R, self.t)
+
+    @property
+    def P(self) -> np.ndarray:
+        """Projection matrices normalized frame → pixels, (N, 3, 4)."""
+        Rt = np.concatenate([self.R, self.t[:, :, None]], axis=2)
+        return self.K @ Rt
+
+    def subset(self, idx) -> "Cameras":
+        return Cameras(self.K[idx], self.R[idx], self.t[idx], self.scale_mat)
+
+
+def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split a 3×4 projection P = s·K[R|t] into K (K[2,2]=1, positive focal lengths), R (det +1) and t."""
+    P = np.asarray(P, dtype=np.float64)[:3, :4]
+    if not np.all(np.isfinite(P)):
+        raise ValueError("projection matrix contains NaN or Inf")
+    M = P[:, :3]
+    if abs(np.linalg.det(M)) < 1e-300:
+        raise ValueError("projection matrix is singular (rank < 3)")
+    # RQ decomposition via QR of the flipped transpose.
+    flip = np.eye(3)[::-1]
+    q, r = np.linalg.qr((flip @ M).T)
+    K = flip @ r.T @ flip
+    R = flip @ q.T
+    # make the diagonal of K positive
+    sgn = np.sign(np.diag(K))
+    sgn[sgn == 0] = 1
+    S = np.diag(sgn)
+    K, R = K @ S, S @ R
+    t = np.linalg.solve(K, P[:, 3])
+    if np.linalg.det(R) < 0:  # projective sign: P and -P are the same camera
+        R, t = -R, -t
+    K = K / K[2, 2]
+    return K, R, t
+
+
+def load_cameras(path: str | Path, n_views: int | None = None) -> Cameras:
+    """Read an IDR/DVR/NeuS-style ``cameras.npz`` (``world_mat_i`` and ``scale_mat`` or ``scale_mat_i``)."""
+    path = Path(path)
+    try:
+        data = np.load(path)
+    except Exception as exc:  # noqa: BLE001
+        raise ValueError(f"{path}: cannot read camera file ({exc}); expected an npz with world_mat_i") from exc
+    keys = [k for k in data.files if k.startswith("world_mat_") and not k.startswith("world_mat_inv")]
+    if not keys:
+        raise ValueError(f"{path}: no world_mat_i entries; write K·[R|t] per view as world_mat_0, world_mat_1, ...")
+    idx = sorted(int(k.rsplit("_", 1)[1]) for k in keys)
+    if idx != list(range(len(idx))):
+        raise ValueError(f"{path}: world_mat indices must be 0..N-1 without gaps, got {idx[:5]}...")
+    if n_views is not None and len(idx) != n_views:
+        raise ValueError(f"{path}: holds {len(idx)} cameras but the workspace has {n_views} images")
+    if "scale_mat" in data.files:
+        scale = data["scale_mat"]
+    elif "scale_mat_0" in data.files:
+        scale = data["scale_mat_0"]
+    else:
+        scale = np.eye(4)
+    scale = np.asarray(scale, dtype=np.float64)
+    Ks, Rs, ts = [], [], []
+    for i in idx:
+        W = np.asarray(data[f"world_mat_{i}"], dtype=np.float64)
+        if W.shape not in ((3, 4), (4, 4)):
+            raise ValueError(f"{path}: world_mat_{i} has shape {W.shape}, expected 3x4 or 4x4")
+        P = W[:3, :4] @ scale
+        K, R, t = decompose_projection(P)
+        Ks.append(K), Rs.append(R), ts.append(t)
+    return Cameras(np.stack(Ks), np.stack(Rs), np.stack(ts), scale)
+
+
+def save_cameras(path: str | Path, K: np.ndarray, R: np.ndarray, t: np.ndarray, scale_mat: np.ndarray) -> None:
+    """Write ``cameras.npz``: K, R, t given in the SfM frame; ``scale_mat`` maps normalized → SfM."""
+    out = {"scale_mat": scale_mat}
+    for i in range(len(K)):
+        W = np.eye(4)
+        W[:3, :4] = K[i] @ np.concatenate([R[i], t[i][:, None]], axis=1)
+        out[f"world_mat_{i}"] = W
+        out[f"scale_mat_{i}"] = scale_mat
+        out[f"camera_mat_{i}"] = K[i]
+    np.savez(path, **out)
+
+
+def pixel_rays(
+    K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, uv: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays through continuous pixel coordinates ``uv`` (..., 2) of one camera.
+
+    Returns origins and unit directions (..., 3) in the camera's world (normalized) frame.
+    Pass ``uv = (j + 0.5, i + 0.5)`` for the centre of pixel (i, j).
+    """
+    if uv.shape[-1] != 2:
+        raise ValueError(f"uv must end in 2, got {tuple(uv.shape)}")
+    ones = torch.ones_like(uv[..., :1])
+    pix = torch.cat([uv, ones], dim=-1)
+    d_cam = pix @ torch.linalg.inv(K).T
+    d_world = d_cam @ R  # R^T d for row vectors
+    d_world = d_world / d_world.norm(dim=-1, keepdim=True)
+    center = -(R.T @ t)
+    return center.expand_as(d_world), d_world
+
+
+def image_rays(cams: Cameras, height: int, width: int, device=None, dtype=torch.float32):
+    """Rays for every pixel centre of every view: origins, dirs of shape (N, H, W, 3)."""
+    jj, ii = torch.meshgrid(
+        torch.arange(width, dtype=torch.float64) + 0.5, torch.arange(height, dtype=torch.float64) + 0.5, indexing="xy"
+    )
+    uv = torch.stack([jj, ii], dim=-1)
+    os, ds = [], []
+    for i in range(len(cams)):
+        o, d = pixel_rays(torch.from_numpy(cams.K[i]), torch.from_numpy(cams.R[i]), torch.from_numpy(cams.t[i]), uv)
+        os.append(o), ds.append(d)
+    return torch.stack(os).to(device=device, dtype=dtype), torch.stack(ds).to(device=device, dtype=dtype)
+
+
+def sphere_bounds(origins: torch.Tensor, dirs: torch.Tensor, radius: float = 1.0):
+    """Entry and exit depths of rays with the sphere |p| = radius, and whether they cross it.
+
+    Rays from inside the sphere start at depth 0. Missing rays get near = far = 0 (finite) and
+    ``valid = False``; no NaN is produced (the discriminant is clamped before the square root).
+    """
+    b = (origins * dirs).sum(-1)
+    c = (origins * origins).sum(-1) - radius * radius
+    disc = b * b - c
+    valid = disc > 0
+    s = torch.sqrt(disc.clamp_min(0.0))
+    near = (-b - s).clamp_min(0.0)
+    far = -b + s
+    valid = valid & (far > 0)
+    near = torch.where(valid, near, torch.zeros_like(near))
+    far = torch.where(valid, far, torch.zeros_like(far))
+    return near, far, valid
+
+
+def project(points: torch.Tensor, P: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Project points (M, 3) with projections P (N, 3, 4): pixel coords (N, M, 2) and depth z (N, M)."""
+    ph = torch.cat([points, torch.ones_like(points[:, :1])], dim=-1)
+    x = torch.einsum("nij,mj->nmi", P, ph)
+    z = x[..., 2]
+    zs = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
+    return x[..., :2] / zs[..., None], z

@@ -1,0 +1,172 @@
+"""Training data: a workspace's images, masks, cameras and optional sparse depth, and the ray sampler.
+
+Layout (DESIGN.md): ``images/`` (view i = i-th file in sorted order), ``masks/`` (same stems, PNG),
+``depth/`` (same stems, npz with ``uv`` (K, 2) continuous pixel coordinates, ``depth`` (K,) ray depth in
+the normalized frame, ``confidence`` (K,)), ``cameras.npz``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from .cameras import Cameras, load_cameras
+
+IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
+
+
+def list_images(folder: Path) -> list[Path]:
+    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_EXTS and p.is_file())
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """Read an image as float32 RGB in [0, 1], (H, W, 3)."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError(f"{path}: not a readable image; replace or remove it")
+    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return img.astype(np.float32) / 255.0
+
+
+def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if m is None:
+        raise ValueError(f"{path}: not a readable mask image; write a PNG with 0 = background, 255 = object")
+    if m.shape != shape:
+        raise ValueError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but its image is {shape[1]}x{shape[0]}; "
+                         "resize the mask to the image")
+    return (m > 127).astype(np.float32)
+
+
+@dataclass
+class SceneData:
+    """All views of a workspace on one device."""
+
+    images: torch.Tensor  # (N, H, W, 3)
+    masks: torch.Tensor  # (N, H, W) in {0, 1}
+    cams: Cameras
+    Kinv: torch.Tensor  # (N, 3, 3)
+    Rt: torch.Tensor  # (N, 3, 3) camera → world rotation (R^T)
+    centers: torch.Tensor  # (N, 3)
+    P: torch.Tensor  # (N, 3, 4) normalized → pixels
+    names: list[str]
+    depth_views: torch.Tensor | None = None  # (K,) view of each sparse depth
+    depth_uv: torch.Tensor | None = None  # (K, 2)
+    depth_val: torch.Tensor | None = None  # (K,)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.masks.shape)  # type: ignore[return-value]
+
+    def rays(self, view: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays (origins, unit dirs) through continuous pixel coordinates uv (B, 2) of views (B,)."""
+        pix = torch.cat([uv, torch.ones_like(uv[:, :1])], dim=-1)
+        d = torch.einsum("bij,bj->bi", self.Kinv[view], pix)
+        d = torch.einsum("bij,bj->bi", self.Rt[view], d)
+        d = d / d.norm(dim=-1, keepdim=True)
+        return self.centers[view], d
+
+
+def load_scene(ws: Path, device: torch.device, use_depth: bool = True, views: list[int] | None = None) -> SceneData:
+    """Load images/, masks/, cameras.npz (and depth/ when present and ``use_depth``) of workspace ``ws``."""
+    ws = Path(ws)
+    img_dir, mask_dir = ws / "images", ws / "masks"
+    if not img_dir.is_dir():
+        raise FileNotFoundError(f"{img_dir}: missing; run the cameras stage (or synth) first")
+    paths = list_images(img_dir)
+    if not paths:
+        raise FileNotFoundError(f"{img_dir}: no images; run the cameras stage first")
+    cams = load_cameras(ws / "cameras.npz", n_views=len(paths))
+    if views is not None:
+        paths = [paths[i] for i in views]
+        cams = cams.subset(views)
+    imgs, masks = [], []
+    for p in paths:
+        img = read_rgb(p)
+        mp = mask_dir / f"{p.stem}.png"
+        if not mp.exists():
+            raise FileNotFoundError(f"{mp}: missing mask for {p.name}; run the masks stage")
+        if imgs and img.shape != imgs[0].shape:
+            raise ValueError(f"{p}: size {img.shape[1]}x{img.shape[0]} differs from the other images")
+        imgs.append(img)
+        masks.append(read_mask(mp, img.shape[:2]))
+    f32 = dict(device=device, dtype=torch.float32)
+    K = torch.from_numpy(cams.K)
+    R = torch.from_numpy(cams.R)
+    data = SceneData(
+        images=torch.from_numpy(np.stack(imgs)).to(**f32),
+        masks=torch.from_numpy(np.stack(masks)).to(**f32),
+        cams=cams,
+        Kinv=torch.linalg.inv(K).to(**f32),
+        Rt=R.transpose(1, 2).contiguous().to(**f32),
+        centers=torch.from_numpy(cams.centers).to(**f32),
+        P=torch.from_numpy(cams.P).to(**f32),
+        names=[p.stem for p in paths],
+    )
+    depth_dir = ws / "depth"
+    if use_depth and depth_dir.is_dir():
+        dv, duv, dd = [], [], []
+        for i, p in enumerate(paths):
+            f = depth_dir / f"{p.stem}.npz"
+            if not f.exists():
+                continue
+            z = np.load(f)
+            uv, d = np.asarray(z["uv"], np.float32).reshape(-1, 2), np.asarray(z["depth"], np.float32).reshape(-1)
+            ok = np.isfinite(d) & (d > 0) & np.isfinite(uv).all(1)
+            dv.append(np.full(ok.sum(), i)), duv.append(uv[ok]), dd.append(d[ok])
+        if dv and sum(len(x) for x in dv) > 0:
+            data.depth_views = torch.from_numpy(np.concatenate(dv)).to(device=device, dtype=torch.long)
+            data.depth_uv = torch.from_numpy(np.concatenate(duv)).to(**f32)
+            data.depth_val = torch.from_numpy(np.concatenate(dd)).to(**f32)
+    return data
+
+
+class RaySampler:
+    """Uniform pixel sampling plus oversampling of a band around mask boundaries."""
+
+    def __init__(self, data: SceneData, boundary_fraction: float = 0.25, band_px: int | None = None,
+                 generator: torch.Generator | None = None):
+        self.data = data
+        N, H, W = data.shape
+        self.n_pix = N * H * W
+        self.boundary_fraction = boundary_fraction
+        self.gen = generator
+        band_px = band_px or max(2, round(0.02 * max(H, W)))
+        k = np.ones((2 * band_px + 1, 2 * band_px + 1), np.uint8)
+        band = []
+        for m in data.masks.cpu().numpy().astype(np.uint8):
+            band.append(cv2.dilate(m, k) != cv2.erode(m, k))
+        idx = np.flatnonzero(np.stack(band))
+        self.band = torch.from_numpy(idx).to(data.masks.device)
+
+    def sample(self, n: int):
+        dev = self.data.masks.device
+        nb = int(round(n * self.boundary_fraction)) if self.band.numel() > 0 else 0
+        u = torch.randint(0, self.n_pix, (n - nb,), generator=self.gen, device="cpu").to(dev)
+        if nb:
+            b = self.band[torch.randint(0, self.band.numel(), (nb,), generator=self.gen, device="cpu").to(dev)]
+            u = torch.cat([u, b])
+        return self.pixels(u)
+
+    def pixels(self, flat: torch.Tensor):
+        """Rays, colours and mask values of flat pixel indices into (N, H, W)."""
+        N, H, W = self.data.shape
+        view = flat // (H * W)
+        rem = flat % (H * W)
+        i, j = rem // W, rem % W
+        uv = torch.stack([j, i], dim=-1).to(torch.float32) + 0.5
+        o, d = self.data.rays(view, uv)
+        return o, d, self.data.images[view, i, j], self.data.masks[view, i, j]
+
+    def sample_depth(self, n: int):
+        """Rays and sparse depths (exact pixel coordinates), or None when the scene has none."""
+        if self.data.depth_val is None or n <= 0:
+            return None
+        k = torch.randint(0, self.data.depth_val.numel(), (n,), generator=self.gen, device="cpu")
+        k = k.to(self.data.depth_val.device)
+        o, d = self.data.rays(self.data.depth_views[k], self.data.depth_uv[k])
+        return o, d, self.data.depth_val[k]

@@ -1,0 +1,64 @@
+"""Visual hull from masks: which points some view sees outside its mask (or no view sees at all).
+
+Used twice: to initialise the occupancy (a smooth signed-distance-like logit volume of the hull), and as
+3-D carving supervision during training (random points of the unit sphere that are outside the hull are
+pushed to free space). Points are projected into all masks at once.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy import ndimage
+
+from .cameras import project
+
+
+def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor):
+    """Mask value of every point in every view: (N, M) values in [0, 1] and (N, M) 'seen' flags.
+
+    ``masks`` is (N, H, W) float; a point is seen by a view when it is in front of the camera and projects
+    inside the image. Bilinear lookup with pixel centres at +0.5 (``align_corners=False``).
+    """
+    N, H, W = masks.shape
+    uv, z = project(points.to(P.dtype), P)
+    seen = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= W) & (uv[..., 1] >= 0) & (uv[..., 1] <= H)
+    g = torch.stack([uv[..., 0] / W * 2 - 1, uv[..., 1] / H * 2 - 1], dim=-1).to(masks.dtype)
+    g = torch.nan_to_num(g, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2, 2)
+    vals = F.grid_sample(masks[:, None], g[:, :, None, :], mode="bilinear", align_corners=False, padding_mode="zeros")
+    return vals[:, 0, :, 0], seen
+
+
+def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min_views: int = 1,
+                 chunk: int = 65536) -> torch.Tensor:
+    """True for points that ≥ ``min_views`` views see outside their mask, or that no view sees."""
+    out = []
+    for s in range(0, points.shape[0], chunk):
+        vals, seen = mask_lookup(points[s : s + chunk], P, masks)
+        n_out = ((vals < 0.5) & seen).sum(0)
+        out.append((n_out >= min_views) | (seen.sum(0) == 0))
+    return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool, device=points.device)
+
+
+def grid_points(res: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """(res+1)³ lattice points over [-1, 1]³, indexed [x, y, z] and flattened in that order."""
+    lin = torch.linspace(-1.0, 1.0, res + 1, device=device, dtype=dtype)
+    x, y, z = torch.meshgrid(lin, lin, lin, indexing="ij")
+    return torch.stack([x, y, z], dim=-1).view(-1, 3)
+
+
+def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1, slope_cells: float = 1.0,
+                clamp: float = 10.0) -> torch.Tensor:
+    """Logit volume (res+1)³ [x, y, z] of the visual hull: ≈ signed distance (in cells) × 2/slope_cells,
+    positive inside; points outside the unit sphere are free. Returns a float32 tensor on masks' device."""
+    pts = grid_points(res, device=masks.device)
+    free = outside_hull(pts, P, masks, min_views) | (pts.norm(dim=-1) > 1.0)
+    inside = (~free).view(res + 1, res + 1, res + 1).cpu().numpy()
+    if not inside.any():
+        return torch.full((res + 1,) * 3, -clamp, device=masks.device)
+    d_in = ndimage.distance_transform_edt(inside)
+    d_out = ndimage.distance_transform_edt(~inside)
+    sdf = np.where(inside, d_in - 0.5, -(d_out - 0.5))
+    logit = np.clip(sdf * (2.0 / slope_cells), -clamp, clamp)
+    return torch.from_numpy(logit.astype(np.float32)).to(masks.device)

@@ -1,0 +1,182 @@
+"""Surface finding without autograd: ray marching to the FIRST free→occupied change, then secant refinement.
+
+Every ray gets a status:
+
+* ``HIT``: a free → occupied change was found; ``depth`` is the refined root.
+* ``MISS``: the ray never changes from free to occupied inside the unit sphere (or misses the sphere).
+* ``INSIDE``: the first sample (the ray's entry into the unit sphere, or the camera when it is inside the
+  sphere) is already occupied — the ray starts inside the object. It gets ``depth = near`` and is never
+  reported as a hit; in particular no ray ever returns depth 0 at the camera as a "surface".
+
+Memory does not grow with ``n_steps``: samples are evaluated in blocks of at most ``max_points`` points,
+and rays that have found their crossing leave the work set.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from .cameras import sphere_bounds
+
+MISS, HIT, INSIDE = 0, 1, 2
+
+LogitFn = Callable[[torch.Tensor], torch.Tensor]
+
+
+@dataclass
+class SurfaceResult:
+    depth: torch.Tensor  # (B,) refined depth for hits; near for INSIDE; far for MISS (finite everywhere)
+    status: torch.Tensor  # (B,) int8 codes MISS / HIT / INSIDE
+    near: torch.Tensor  # (B,) sphere entry
+    far: torch.Tensor  # (B,) sphere exit
+    max_depth: torch.Tensor  # (B,) depth of the sample with the largest logit (target for missed mask rays)
+
+    @property
+    def hit(self) -> torch.Tensor:
+        return self.status == HIT
+
+
+def _check_rays(origins: torch.Tensor, dirs: torch.Tensor) -> None:
+    if origins.ndim != 2 or origins.shape[-1] != 3:
+        raise ValueError(f"origins must be (B, 3), got {tuple(origins.shape)}")
+    if dirs.shape != origins.shape:
+        raise ValueError(f"dirs must match origins {tuple(origins.shape)}, got {tuple(dirs.shape)}")
+
+
+def sample_depths(near: torch.Tensor, far: torch.Tensor, n_steps: int, jitter: bool, generator=None) -> torch.Tensor:
+    """(B, n_steps) depths from near to far (both included); jitter moves interior samples within their cell."""
+    t = torch.linspace(0.0, 1.0, n_steps, device=near.device, dtype=near.dtype).expand(near.shape[0], n_steps)
+    if jitter and n_steps > 2:
+        noise = torch.rand(near.shape[0], n_steps, device=near.device, dtype=near.dtype, generator=generator) - 0.5
+        noise[:, 0] = 0.0
+        noise[:, -1] = 0.0
+        t = t + noise / (n_steps - 1)
+    return near[:, None] + (far - near)[:, None] * t
+
+
+@torch.no_grad()
+def secant(
+    logit_fn: LogitFn,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    d_lo: torch.Tensor,
+    d_hi: torch.Tensor,
+    f_lo: torch.Tensor,
+    f_hi: torch.Tensor,
+    n_iter: int,
+    level: float = 0.0,
+) -> torch.Tensor:
+    """Refine roots bracketed by f_lo < level ≤ f_hi with the Illinois variant of the secant method.
+
+    The bracket is kept, so the result never leaves [d_lo, d_hi]; f_hi − f_lo > 0 always (no division by 0).
+    """
+    f_lo = f_lo - level
+    f_hi = f_hi - level
+    side = torch.zeros_like(d_lo, dtype=torch.int8)
+    d = d_lo - f_lo * (d_hi - d_lo) / (f_hi - f_lo)
+    for _ in range(n_iter):
+        d = d_lo - f_lo * (d_hi - d_lo) / (f_hi - f_lo)
+        d = torch.minimum(torch.maximum(d, d_lo), d_hi)
+        f = logit_fn(origins + d[:, None] * dirs).to(d.dtype) - level
+        occ = f >= 0
+        # Illinois: when the same end is kept twice, halve its value so the other end moves too
+        keep_lo = occ & (side == 1)
+        keep_hi = (~occ) & (side == -1)
+        f_lo = torch.where(keep_lo, f_lo * 0.5, f_lo)
+        f_hi = torch.where(keep_hi, f_hi * 0.5, f_hi)
+        d_hi = torch.where(occ, d, d_hi)
+        f_hi = torch.where(occ, f, f_hi)
+        d_lo = torch.where(occ, d_lo, d)
+        f_lo = torch.where(occ, f_lo, f)
+        side = torch.where(occ, torch.ones_like(side), -torch.ones_like(side))
+    return d
+
+
+@torch.no_grad()
+def find_surface(
+    logit_fn: LogitFn,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    n_steps: int = 64,
+    n_secant: int = 8,
+    level: float = 0.0,
+    jitter: bool = False,
+    max_points: int = 262144,
+    near: torch.Tensor | None = None,
+    far: torch.Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> SurfaceResult:
+    """March ``n_steps`` samples between the unit-sphere entry and exit of each ray, return the first surface.
+
+    ``logit_fn`` maps (M, 3) points to (M,) logits; the surface is where the logit crosses ``level``
+    from below (free) to above (occupied).
+    """
+    _check_rays(origins, dirs)
+    if n_steps < 2:
+        raise ValueError(f"n_steps must be ≥ 2, got {n_steps}")
+    B = origins.shape[0]
+    dev, dt = origins.device, origins.dtype
+    if near is None or far is None:
+        near, far, valid = sphere_bounds(origins, dirs)
+    else:
+        valid = far > near
+    depths = sample_depths(near, far, n_steps, jitter, generator)  # (B, S) — small: no field values kept
+
+    status = torch.full((B,), MISS, dtype=torch.int8, device=dev)
+    out_depth = far.clone()
+    max_val = torch.full((B,), -float("inf"), dtype=dt, device=dev)
+    max_depth = 0.5 * (near + far)
+    lo_d = torch.zeros(B, dtype=dt, device=dev)
+    hi_d = torch.zeros_like(lo_d)
+    lo_f = torch.zeros_like(lo_d)
+    hi_f = torch.zeros_like(lo_d)
+    prev = torch.zeros(B, dtype=dt, device=dev)
+
+    active = valid.nonzero().view(-1)
+    block = max(1, min(n_steps, max_points // max(1, active.numel())))
+    s0 = 0
+    while s0 < n_steps and active.numel() > 0:
+        s1 = min(n_steps, s0 + block)
+        d_blk = depths[active, s0:s1]  # (A, s)
+        pts = origins[active, None, :] + d_blk[..., None] * dirs[active, None, :]
+        vals = logit_fn(pts.reshape(-1, 3)).to(dt).view(active.numel(), s1 - s0) - level
+        # track the sample with the largest logit (used for rays inside the mask that miss)
+        bmax, barg = vals.max(dim=1)
+        better = bmax > max_val[active]
+        max_val[active] = torch.where(better, bmax, max_val[active])
+        max_depth[active] = torch.where(better, d_blk.gather(1, barg[:, None])[:, 0], max_depth[active])
+        if s0 == 0:
+            inside = vals[:, 0] >= 0
+            status[active[inside]] = INSIDE
+            out_depth[active[inside]] = near[active[inside]]
+            vv, dd = vals, d_blk
+        else:
+            inside = torch.zeros_like(vals[:, 0], dtype=torch.bool)
+            vv = torch.cat([prev[active, None], vals], dim=1)
+            dd = torch.cat([depths[active, s0 - 1 : s0], d_blk], dim=1)
+        cross = (vv[:, :-1] < 0) & (vv[:, 1:] >= 0)
+        found = cross.any(dim=1) & ~inside
+        first = cross.to(torch.int8).argmax(dim=1)
+        if found.any():
+            f_idx = active[found]
+            k = first[found]
+            lo_d[f_idx] = dd[found].gather(1, k[:, None])[:, 0]
+            hi_d[f_idx] = dd[found].gather(1, (k + 1)[:, None])[:, 0]
+            lo_f[f_idx] = vv[found].gather(1, k[:, None])[:, 0]
+            hi_f[f_idx] = vv[found].gather(1, (k + 1)[:, None])[:, 0]
+            status[f_idx] = HIT
+        prev[active] = vals[:, -1]
+        active = active[~(found | inside)]
+        s0 = s1
+
+    hit = (status == HIT).nonzero().view(-1)
+    if hit.numel() > 0:
+        d = secant(
+            logit_fn, origins[hit], dirs[hit], lo_d[hit], hi_d[hit], lo_f[hit] + level, hi_f[hit] + level,
+            n_secant, level,
+        ) if n_secant > 0 else lo_d[hit] - lo_f[hit] * (hi_d[hit] - lo_d[hit]) / (hi_f[hit] - lo_f[hit])
+        out_depth[hit] = d
+    return SurfaceResult(out_depth, status, near, far, max_depth)

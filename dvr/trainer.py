@@ -1,0 +1,356 @@
+"""DVR training loop: Adam + exponential LR decay, checkpoints and exact resume, log.jsonl, previews."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from . import losses as L
+from .data import RaySampler, SceneData
+from .device import resolve_device
+from .fields import FieldConfig, finite_difference_normals, make_field
+from .hull import hull_logits, outside_hull
+from .implicit import implicit_depth
+from .march import HIT, INSIDE, MISS, find_surface
+from .render import render_view
+
+
+@dataclass
+class LossWeights:
+    """Weights of the DVR loss terms (each term is a mean, so weights do not depend on the batch size)."""
+
+    rgb: float = 1.0
+    """L1 colour loss on rays that hit where the mask is set."""
+    freespace: float = 1.0
+    """BCE→0 for rays outside the mask (at the hit point, or a random point of a missing ray)."""
+    occupancy: float = 1.0
+    """BCE→1 for mask rays the rendering misses (at the max-logit sample, or at the sparse depth)."""
+    depth: float = 1.0
+    """L1 between rendered and sparse SfM depth (only where depth/ exists)."""
+    carve: float = 1.0
+    """BCE→0 at random points of the unit sphere outside the visual hull of the masks."""
+    tv: float = 0.5
+    """Total variation of the occupancy grids."""
+    normal: float = 0.01
+    """Normal smoothness: |n(p̂) − n(p̂ + noise)| on hit points."""
+
+
+@dataclass
+class TrainConfig:
+    """Training of the DVR occupancy and texture fields."""
+
+    iterations: int = 1500
+    """Optimisation steps."""
+    batch_rays: int = 2048
+    """Pixels (rays) per step."""
+    depth_rays: int = 256
+    """Extra rays per step through sparse-depth pixels (when depth/ exists)."""
+    carve_points: int = 4096
+    """Random points per step for visual-hull carving."""
+    n_steps: int = 64
+    """Ray-marching samples between the unit-sphere entry and exit."""
+    n_steps_final: int = 96
+    """Marching samples at the last step (linear schedule from n_steps)."""
+    n_secant: int = 8
+    """Secant (Illinois) refinement steps."""
+    jitter: bool = True
+    """Jitter the marching samples while training."""
+    lr_grid: float = 0.02
+    """Adam learning rate of the grids and planes."""
+    lr_mlp: float = 0.002
+    """Adam learning rate of the MLP heads."""
+    lr_decay: float = 0.1
+    """Final LR as a fraction of the initial (exponential decay)."""
+    grad_eps: float = 0.05
+    """Guard of |∇ₚf·w| in the implicit gradient (sign-preserving)."""
+    boundary_fraction: float = 0.25
+    """Fraction of each batch drawn from a band around mask boundaries."""
+    hull_init: bool = True
+    """Initialise the occupancy grid from the visual hull of the masks."""
+    hull_res: int = 96
+    """Resolution of the visual-hull volume."""
+    carve_min_views: int = 1
+    """Views that must see a point outside their mask before it is carved."""
+    weights: LossWeights = field(default_factory=LossWeights)
+    """Loss weights."""
+    field: FieldConfig = field(default_factory=FieldConfig)
+    """Field representation."""
+    checkpoint_every: int = 250
+    """Steps between checkpoints (resume after a kill continues from the last)."""
+    log_every: int = 25
+    """Steps between log.jsonl lines."""
+    preview_every: int = 500
+    """Steps between preview renders (0: only at the end)."""
+    seed: int = 0
+    """Random seed (fixed for reproducible runs)."""
+    device: str = "auto"
+    """'auto' (CUDA when present), 'cpu' or 'cuda'."""
+    threads: int = 0
+    """CPU threads for torch (0: torch's default)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+def _set_seed(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def save_model(path: Path, model, cfg: FieldConfig, scale_mat: np.ndarray, extra: dict | None = None) -> None:
+    _atomic_save({"field": model.state_dict(), "field_config": asdict(cfg), "scale_mat": scale_mat,
+                  **(extra or {})}, path)
+
+
+def load_model(path: Path, device: torch.device):
+    """Load a field saved by :func:`save_model`: (field, scale_mat)."""
+    ck = torch.load(path, map_location=device, weights_only=False)
+    fc = dict(ck["field_config"])
+    fc["plane_res"] = tuple(fc["plane_res"])
+    model = make_field(FieldConfig(**fc)).to(device)
+    model.load_state_dict(ck["field"])
+    model.eval()
+    return model, ck["scale_mat"]
+
+
+class Trainer:
+    """Trains a field on a SceneData, writing into ``out_dir`` (the workspace's ``model/``)."""
+
+    def __init__(self, cfg: TrainConfig, data: SceneData, out_dir: Path):
+        self.cfg = cfg
+        self.data = data
+        self.out = Path(out_dir)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.device = data.masks.device
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)
+        _set_seed(cfg.seed)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.model = make_field(cfg.field).to(self.device)
+        if cfg.hull_init:
+            self.model.init_occupancy(hull_logits(data.P, data.masks, cfg.hull_res, cfg.carve_min_views))
+        grid_ids = {id(p) for p in self.model.grid_parameters()}
+        groups = [
+            {"params": [p for p in self.model.parameters() if id(p) in grid_ids], "lr": cfg.lr_grid},
+            {"params": [p for p in self.model.parameters() if id(p) not in grid_ids], "lr": cfg.lr_mlp},
+        ]
+        groups = [g for g in groups if g["params"]]
+        fused = {"fused": True} if self.device.type in ("cpu", "cuda") else {}
+        self.opt = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, **fused)
+        gamma = cfg.lr_decay ** (1.0 / max(1, cfg.iterations))
+        self.sched = torch.optim.lr_scheduler.ExponentialLR(self.opt, gamma)
+        self.sampler = RaySampler(data, cfg.boundary_fraction, generator=self.gen)
+        self.step = 0
+        self.elapsed = 0.0
+        self.skipped = 0
+
+    # ----------------------------------------------------------------- checkpoints
+    @property
+    def ckpt_path(self) -> Path:
+        return self.out / "checkpoint.pt"
+
+    def save_checkpoint(self) -> None:
+        _atomic_save({
+            "step": self.step, "elapsed": self.elapsed, "skipped": self.skipped,
+            "field": self.model.state_dict(), "opt": self.opt.state_dict(), "sched": self.sched.state_dict(),
+            "rng_torch": torch.get_rng_state(), "rng_gen": self.gen.get_state(),
+            "rng_np": np.random.get_state(), "rng_py": random.getstate(),
+            "rng_cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+        }, self.ckpt_path)
+
+    def try_resume(self) -> bool:
+        if not self.ckpt_path.exists():
+            return False
+        ck = torch.load(self.ckpt_path, map_location=self.device, weights_only=False)
+        self.model.load_state_dict(ck["field"])
+        self.opt.load_state_dict(ck["opt"])
+        self.sched.load_state_dict(ck["sched"])
+        torch.set_rng_state(ck["rng_torch"])
+        self.gen.set_state(ck["rng_gen"])
+        np.random.set_state(ck["rng_np"])
+        random.setstate(ck["rng_py"])
+        if ck.get("rng_cuda") is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(ck["rng_cuda"])
+        self.step, self.elapsed, self.skipped = ck["step"], ck["elapsed"], ck["skipped"]
+        return True
+
+    # ----------------------------------------------------------------- one step
+    def n_steps_at(self, step: int) -> int:
+        c = self.cfg
+        a = step / max(1, c.iterations - 1)
+        return int(round(c.n_steps + a * (c.n_steps_final - c.n_steps)))
+
+    def losses(self, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        c, w, m = self.cfg, self.cfg.weights, self.model
+        o, d, rgb, mask = self.sampler.sample(c.batch_rays)
+        res = find_surface(m.occupancy, o, d, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
+                           jitter=c.jitter, generator=None)
+        st, inm = res.status, mask > 0.5
+        terms: dict[str, torch.Tensor] = {}
+        stats: dict[str, float] = {}
+        hit = st == HIT
+        occ_params = m.occupancy_parameters()
+
+        # hits: exact implicit depth → surface points → colour
+        hi = hit.nonzero().view(-1)
+        dh = implicit_depth(m.occupancy, occ_params, o[hi], d[hi], res.depth[hi], c.grad_eps)
+        ph = o[hi] + dh[:, None] * d[hi]
+        hm = inm[hi]
+        col = m.texture(ph[hm])
+        terms["rgb"] = L.rgb_loss(col, rgb[hi][hm])
+        stats["psnr"] = L.psnr(col, rgb[hi][hm])
+
+        # free space: outside-mask rays (hit point, or a random point of a missing ray); rays starting inside
+        # the object are wrong whatever the mask says (the object lies inside the unit sphere): entry → free
+        u = torch.rand(o.shape[0], device=o.device)
+        rand_d = res.near + u * (res.far - res.near)
+        fs_d = torch.where(hit, res.depth, torch.where(st == INSIDE, res.near, rand_d))
+        fs = ((~inm) & (st != INSIDE)) | (st == INSIDE)
+        fs_pts = (o + fs_d[:, None] * d)[fs]
+        # occupancy: mask rays that miss → point of largest logit
+        oc = inm & (st == MISS)
+        oc_pts = (o + res.max_depth[:, None] * d)[oc]
+        terms["freespace"] = torch.zeros((), device=o.device)
+        terms["occupancy"] = torch.zeros((), device=o.device)
+
+        # sparse depth
+        terms["depth"] = torch.zeros((), device=o.device)
+        ds = self.sampler.sample_depth(c.depth_rays) if w.depth > 0 else None
+        dep_pts = torch.zeros(0, 3, device=o.device)
+        if ds is not None:
+            do, dd, dz = ds
+            dres = find_surface(m.occupancy, do, dd, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
+                                jitter=c.jitter)
+            dhit = dres.hit.nonzero().view(-1)
+            zd = implicit_depth(m.occupancy, occ_params, do[dhit], dd[dhit], dres.depth[dhit], c.grad_eps)
+            terms["depth"] = L.depth_loss(zd, dz[dhit])
+            dep_pts = (do + dz[:, None] * dd)[~dres.hit]  # missed: push occupancy at the known depth
+
+        # carving: random points of the unit sphere outside the visual hull
+        cp = torch.randn(c.carve_points, 3, device=o.device)
+        cp = cp / cp.norm(dim=-1, keepdim=True) * torch.rand(c.carve_points, 1, device=o.device) ** (1 / 3)
+        carve_pts = cp[outside_hull(cp, self.data.P, self.data.masks, c.carve_min_views)]
+
+        # one field evaluation for all classification points
+        nf, no = fs_pts.shape[0], oc_pts.shape[0] + dep_pts.shape[0]
+        allp = torch.cat([fs_pts, oc_pts, dep_pts, carve_pts])
+        if allp.shape[0]:
+            lg = m.occupancy(allp)
+            terms["freespace"] = L.freespace_loss(lg[:nf])
+            terms["occupancy"] = L.occupancy_loss(lg[nf : nf + no])
+            terms["carve"] = L.freespace_loss(lg[nf + no :])
+        else:
+            terms["carve"] = torch.zeros((), device=o.device)
+
+        terms["tv"] = m.tv_loss()
+        if w.normal > 0 and ph.shape[0] > 0:
+            p_s = ph.detach()
+            n1 = finite_difference_normals(m.occupancy, p_s)
+            n2 = finite_difference_normals(m.occupancy, p_s + 0.01 * torch.randn_like(p_s))
+            terms["normal"] = L.normal_smoothness_loss(n1, n2)
+        total = sum(getattr(w, k) * v for k, v in terms.items())
+        stats.update({k: float(v.detach()) for k, v in terms.items()})
+        stats["hit_frac"] = float(hit.float().mean())
+        return total, stats
+
+    def train_step(self, step: int) -> dict[str, float]:
+        self.opt.zero_grad(set_to_none=True)
+        total, stats = self.losses(step)
+        finite = bool(torch.isfinite(total))
+        if finite:
+            total.backward()
+        # guard: never let a non-finite loss or gradient reach the parameters
+        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+        if finite and all(bool(torch.isfinite(g).all()) for g in grads):
+            self.opt.step()
+        else:
+            self.skipped += 1
+        self.sched.step()
+        stats["loss"] = float(total.detach()) if finite else float("nan")
+        return stats
+
+    # ----------------------------------------------------------------- loop
+    def preview(self, tag: str) -> None:
+        v = self.step % len(self.data.names)
+        img, _ = render_view(self.model, self.data, v, scale=min(1.0, 256 / max(self.data.shape[1:])))
+        gt = self.data.images[v].cpu().numpy()
+        gt = cv2.resize(gt, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_AREA)
+        both = np.concatenate([gt, img.cpu().numpy()], axis=1)
+        cv2.imwrite(str(self.out / f"preview_{tag}.png"), cv2.cvtColor((both * 255).clip(0, 255).astype(np.uint8),
+                                                                        cv2.COLOR_RGB2BGR))
+
+    def fit(self, stop_after: int | None = None) -> dict[str, float]:
+        """Train until ``cfg.iterations`` (or ``stop_after`` steps in this call, for tests of resume)."""
+        c = self.cfg
+        log = open(self.out / "log.jsonl", "a")
+        bar = tqdm(total=c.iterations, initial=self.step, disable=not c.progress, dynamic_ncols=True)
+        last: dict[str, float] = {}
+        n_done = 0
+        t_last = time.perf_counter()
+        rays_since = 0
+        try:
+            while self.step < c.iterations and (stop_after is None or n_done < stop_after):
+                t0 = time.perf_counter()
+                stats = self.train_step(self.step)
+                self.elapsed += time.perf_counter() - t0
+                self.step += 1
+                n_done += 1
+                rays_since += c.batch_rays
+                last = stats
+                if self.step % c.log_every == 0 or self.step == c.iterations:
+                    now = time.perf_counter()
+                    stats["rays_per_s"] = rays_since / max(1e-9, now - t_last)
+                    t_last, rays_since = now, 0
+                    rec = {"step": self.step, "seconds": round(self.elapsed, 3), "skipped": self.skipped,
+                           **{k: (None if isinstance(v, float) and math.isnan(v) else round(v, 6))
+                              for k, v in stats.items()}}
+                    log.write(json.dumps(rec) + "\n")
+                    log.flush()
+                    bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.1f}",
+                                    rays_s=f"{stats['rays_per_s']:.0f}")
+                bar.update(1)
+                if self.step % c.checkpoint_every == 0 or self.step == c.iterations:
+                    self.save_checkpoint()
+                if c.preview_every and self.step % c.preview_every == 0:
+                    self.preview(f"{self.step:06d}")
+        finally:
+            bar.close()
+            log.close()
+        return last
+
+    def finish(self) -> Path:
+        """Write ``final.pt`` (weights + field config + scale_mat) and a last preview."""
+        path = self.out / "final.pt"
+        save_model(path, self.model, self.cfg.field, self.data.cams.scale_mat,
+                   {"step": self.step, "elapsed": self.elapsed, "train_config": asdict(self.cfg)})
+        self.preview("final")
+        return path
+
+
+def train(cfg: TrainConfig, data: SceneData, out_dir: Path, stop_after: int | None = None) -> Trainer:
+    """Train (resuming from ``out_dir/checkpoint.pt`` when present) and return the trainer."""
+    t = Trainer(cfg, data, out_dir)
+    t.try_resume()
+    t.fit(stop_after)
+    if t.step >= cfg.iterations:
+        t.finish()
+    return t
+
+
+__all__ = ["TrainConfig", "LossWeights", "Trainer", "train", "load_model", "save_model", "resolve_device"]

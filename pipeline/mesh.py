@@ -1,0 +1,80 @@
+"""Stage ``mesh``: isosurface of the trained occupancy → ``mesh/raw.ply``; cleaned → ``mesh/clean.ply``."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pymeshlab
+import torch
+import trimesh
+
+from dvr.device import resolve_device
+from dvr.extract import extract_mesh
+from dvr.trainer import load_model
+
+from .config import MeshConfig, config_hash
+from .workspace import StageError, Workspace
+
+
+def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Small components, duplicates, degenerate faces, non-manifold edges, small holes, smoothing, decimation."""
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts.astype(np.float64), face_matrix=faces.astype(np.int32)))
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_remove_duplicate_faces()
+    ms.meshing_remove_null_faces()
+    ms.meshing_repair_non_manifold_edges()
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    tm = trimesh.Trimesh(m.vertex_matrix(), m.face_matrix(), process=False)
+    comps = tm.split(only_watertight=False)
+    if len(comps) > 1:
+        largest = max(len(c.faces) for c in comps)
+        keep = [c for c in comps if len(c.faces) >= cfg.min_component_ratio * largest]
+        tm = trimesh.util.concatenate(keep)
+        ms = pymeshlab.MeshSet()
+        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=tm.vertices, face_matrix=tm.faces.astype(np.int32)))
+    ms.meshing_close_holes(maxholesize=30)
+    if cfg.smooth_iterations > 0:
+        ms.apply_coord_taubin_smoothing(stepsmoothnum=cfg.smooth_iterations)
+    if ms.current_mesh().face_number() > cfg.max_faces:
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=cfg.max_faces, preservenormal=True)
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    return m.vertex_matrix(), m.face_matrix()
+
+
+def _export(path, verts, faces, colors, scale_mat, frame):
+    m = trimesh.Trimesh(verts, faces, vertex_colors=colors, process=False)
+    if frame == "sfm":
+        m.apply_transform(scale_mat)
+    m.export(path)
+
+
+def run(ws: Workspace, cfg: MeshConfig, force: bool = False) -> bool:
+    final = ws.model / "final.pt"
+    ws.require(final, hint="run the train stage first")
+    h = config_hash(cfg)
+    raw, clean = ws.mesh / "raw.ply", ws.mesh / "clean.ply"
+    if not force and ws.up_to_date("mesh", h, [final], [raw, clean]):
+        print(f"mesh: up to date ({clean})")
+        return False
+    ws.clear("mesh")
+    t0 = time.perf_counter()
+    dev = resolve_device(cfg.device)
+    field, scale_mat = load_model(final, dev)
+    v, f, c = extract_mesh(field, cfg.resolution, cfg.coarse_factor, cfg.refine_steps, device=dev)
+    if len(f) == 0:
+        raise StageError(f"{final}: the trained field has no surface; check masks/ and retrain (--force)")
+    ws.mesh.mkdir(parents=True, exist_ok=True)
+    _export(raw, v, f, c, scale_mat, cfg.frame)
+    cv, cf = clean_mesh(v, f, cfg)
+    with torch.no_grad():
+        pts = torch.from_numpy(cv).float().to(dev)
+        cc = torch.cat([field.texture(pts[s : s + 65536]) for s in range(0, len(pts), 65536)]) if len(pts) else \
+            torch.zeros(0, 3)
+    _export(clean, cv, cf, (cc.clamp(0, 1) * 255).round().byte().cpu().numpy(), scale_mat, cfg.frame)
+    ws.mark_done("mesh", h, time.perf_counter() - t0, {"raw_faces": int(len(f)), "clean_faces": int(len(cf))})
+    print(f"mesh: {len(f)} raw faces, {len(cf)} clean faces → {clean}")
+    return True

@@ -1,0 +1,379 @@
+"""Render a synthetic scene into the workspace layout, with ground truth beside it.
+
+Only what the scene lists is computed: normals only for lighting or specular highlights, a background
+only when one is listed, each effect only when listed. The list of computed passes is returned and written
+to ``gt/scene.json`` so tests can check it.
+
+Written (DESIGN.md layout): ``images/``, ``masks/`` (unless ``write_masks: false``), ``cameras.npz``
+(world_mat_i in the world = "SfM" frame, scale_mat: canonical/normalized → world), ``depth/`` when
+``sparse_depth`` > 0, and ``gt/``: ``mesh.ply`` (world frame), ``depth/*.npy`` (ray depth, normalized
+frame, 0 on background), ``heldout/`` views, ``scene.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import trimesh
+from skimage import measure
+
+from dvr.cameras import save_cameras, sphere_bounds
+
+from .scene import Scene, Shape
+
+
+# ----------------------------------------------------------------------------- shapes
+def sdf(shape: Shape, p: torch.Tensor) -> torch.Tensor:
+    """Signed distance (negative inside) of an analytic shape at points (M, 3)."""
+    c = torch.tensor(shape.center, dtype=p.dtype)
+    q = p - c
+    k = shape.kind
+    if k == "sphere":
+        return q.norm(dim=-1) - shape.radius
+    if k == "box":
+        b = torch.tensor(shape.size, dtype=p.dtype)
+        d = q.abs() - b
+        return d.clamp_min(0).norm(dim=-1) + d.max(dim=-1).values.clamp_max(0)
+    if k == "torus":
+        xy = q[:, :2].norm(dim=-1) - shape.radius
+        return torch.stack([xy, q[:, 2]], -1).norm(dim=-1) - shape.minor
+    if k == "shell":
+        return (q.norm(dim=-1) - (shape.radius - shape.minor / 2)).abs() - shape.minor / 2
+    if k == "union":
+        if not shape.parts:
+            raise ValueError("union shape needs parts")
+        return torch.stack([sdf(Shape(**d), p) for d in shape.parts]).min(dim=0).values
+    raise ValueError(f"unknown analytic shape '{k}' (sphere, box, torus, shell, union, mesh)")
+
+
+class MeshShape:
+    """A textured mesh scaled into the unit sphere; ray casting with trimesh (Embree when installed)."""
+
+    def __init__(self, shape: Shape, base_dir: str):
+        path = Path(shape.path)
+        if not path.is_absolute():
+            path = Path(base_dir) / path
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: mesh file of the scene not found; fix shape.path")
+        m = trimesh.load(str(path), process=False, force="mesh")
+        center = 0.5 * (m.bounds[0] + m.bounds[1])
+        radius = np.linalg.norm(m.vertices - center, axis=1).max()
+        m.apply_translation(-center)
+        m.apply_scale(shape.fit_radius / radius)
+        self.mesh = m
+        self.uv = getattr(m.visual, "uv", None)
+        mat = getattr(m.visual, "material", None)
+        img = getattr(mat, "image", None) if mat is not None else None
+        if img is None and mat is not None and hasattr(mat, "baseColorTexture"):
+            img = mat.baseColorTexture
+        self.texture = None if img is None else np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
+        # closed surface for ground truth: merge vertices ignoring UVs
+        gt = trimesh.Trimesh(m.vertices.copy(), m.faces.copy(), process=True)
+        gt.merge_vertices(merge_tex=True, merge_norm=True)
+        self.gt = gt
+        self.intersector = trimesh.ray.ray_triangle.RayMeshIntersector(m)
+        try:
+            from trimesh.ray import ray_pyembree
+
+            self.intersector = ray_pyembree.RayMeshIntersector(m)
+        except Exception:  # noqa: BLE001 - Embree is optional
+            pass
+
+    def cast(self, o: np.ndarray, d: np.ndarray):
+        """First hits: (hit mask, depth, point, normal, uv or None)."""
+        n = o.shape[0]
+        loc, ir, it = self.intersector.intersects_location(o, d, multiple_hits=False)
+        hit = np.zeros(n, bool)
+        depth = np.zeros(n)
+        pts = np.zeros((n, 3))
+        nrm = np.zeros((n, 3))
+        uv = np.zeros((n, 2)) if self.uv is not None else None
+        if len(ir):
+            dist = ((loc - o[ir]) * d[ir]).sum(1)
+            order = np.argsort(dist)[::-1]  # keep the nearest when a ray reports several
+            ir, it, loc, dist = ir[order], it[order], loc[order], dist[order]
+            hit[ir], depth[ir], pts[ir] = True, dist, loc
+            tri = self.mesh.triangles[it]
+            bary = trimesh.triangles.points_to_barycentric(tri, loc)
+            vn = self.mesh.vertex_normals[self.mesh.faces[it]]
+            nn = (vn * bary[:, :, None]).sum(1)
+            nrm[ir] = nn / np.linalg.norm(nn, axis=1, keepdims=True).clip(1e-12)
+            if uv is not None:
+                uv[ir] = (self.uv[self.mesh.faces[it]] * bary[:, :, None]).sum(1)
+        return hit, depth, pts, nrm, uv
+
+
+def sphere_trace(shape: Shape, o: torch.Tensor, d: torch.Tensor, iters: int = 256, eps: float = 1e-5):
+    near, far, valid = sphere_bounds(o, d, 1.0)
+    t = near.clone()
+    alive = valid.clone()
+    hit = torch.zeros_like(valid)
+    for _ in range(iters):
+        idx = alive.nonzero().view(-1)
+        if idx.numel() == 0:
+            break
+        s = sdf(shape, o[idx] + t[idx, None] * d[idx])
+        t[idx] += s
+        h = s.abs() < eps
+        hit[idx[h]] = True
+        gone = h | (t[idx] > far[idx])
+        alive[idx[gone]] = False
+    return hit, t
+
+
+def sdf_normals(shape: Shape, p: torch.Tensor, h: float = 1e-4) -> torch.Tensor:
+    e = torch.eye(3, dtype=p.dtype) * h
+    g = torch.stack([sdf(shape, p + e[i]) - sdf(shape, p - e[i]) for i in range(3)], -1)
+    return g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+# ----------------------------------------------------------------------------- textures
+def procedural_noise(p: np.ndarray, scale: float, seed: int) -> np.ndarray:
+    """Smooth multi-scale colour noise on 3-D points, (M, 3) in [0, 1] — rich in corners for SIFT."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((p.shape[0], 3))
+    for c in range(3):
+        acc = np.zeros(p.shape[0])
+        for k in range(24):
+            f = scale * 2 ** rng.uniform(0, 2.5)
+            v = rng.normal(size=3)
+            v /= np.linalg.norm(v)
+            acc += np.sin(f * 2 * np.pi * (p @ v) + rng.uniform(0, 2 * np.pi)) / (1 + 0.3 * k) ** 0.5
+        out[:, c] = 0.5 + 0.5 * np.tanh(acc / 2.0)
+    return out
+
+
+def albedo_of(scene: Scene, pts: np.ndarray, uv: np.ndarray | None, tex: np.ndarray | None) -> np.ndarray:
+    a = scene.albedo
+    if a.kind == "constant":
+        return np.broadcast_to(np.asarray(a.color, float), pts.shape).copy()
+    if a.kind == "checker":
+        k = np.floor(pts * a.scale).sum(1).astype(int) % 2
+        return np.where(k[:, None] == 0, np.asarray(a.color), np.asarray(a.color2))
+    if a.kind == "noise":
+        return procedural_noise(pts, a.scale, a.seed)
+    if a.kind == "texture":
+        if uv is None or tex is None:
+            raise ValueError("albedo 'texture' needs a mesh shape with UVs and a texture image")
+        h, w = tex.shape[:2]
+        x = (uv[:, 0] % 1.0) * w - 0.5
+        y = (1 - uv[:, 1] % 1.0) * h - 0.5
+        m = cv2.remap(tex, x.astype(np.float32)[None], y.astype(np.float32)[None], cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_WRAP)
+        return m[0].astype(float)
+    raise ValueError(f"unknown albedo '{a.kind}' (constant, checker, noise, texture)")
+
+
+# ----------------------------------------------------------------------------- cameras
+def camera_rig(scene: Scene, heldout: bool = False):
+    """K (N,3,3), R (N,3,3), centres (N,3) in the canonical frame; spiral of views looking at the origin."""
+    rig = scene.cameras
+    n = rig.heldout if heldout else rig.n_views
+    if n <= 0:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3))
+    f = 0.5 * rig.width / math.tan(math.radians(rig.fov_deg) / 2)
+    K = np.array([[f, 0, rig.width / 2], [0, f, rig.height / 2], [0, 0, 1.0]])
+    Ks, Rs, Cs = [], [], []
+    lo, hi = rig.elevation
+    h = 0.5 if heldout else 0.0
+    for i in range(n):
+        az = 2 * math.pi * (i + h) / n
+        el = math.radians(lo + (hi - lo) * (((i + h) * 0.618034) % 1.0))
+        c = rig.radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        fwd = -c / np.linalg.norm(c)
+        right = np.cross(fwd, [0, 0, 1.0])
+        right /= np.linalg.norm(right)
+        down = np.cross(fwd, right)
+        Rs.append(np.stack([right, down, fwd]))
+        Ks.append(K.copy())
+        Cs.append(c)
+    return np.stack(Ks), np.stack(Rs), np.stack(Cs)
+
+
+# ----------------------------------------------------------------------------- rendering
+def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: list[str], view_seed: int = 0):
+    """Render views: images (N,H,W,3) float, masks (N,H,W) bool, depth (N,H,W) canonical ray depth."""
+    rig = scene.cameras
+    H, W = rig.height, rig.width
+    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    pix = np.stack([jj, ii, np.ones_like(jj)], -1).reshape(-1, 3)
+    rng = np.random.default_rng(scene.cameras.seed + 1000 * view_seed)
+    listed = {e.kind: e for e in scene.effects}
+    need_normals = scene.lighting.kind != "none" or "specular" in listed
+    imgs, masks, depths = [], [], []
+    for v in range(len(K)):
+        d = pix @ np.linalg.inv(K[v]).T @ R[v]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o = np.broadcast_to(C[v], d.shape).copy()
+        if mesh_shape is not None:
+            hit, depth, pts, nrm, uv = mesh_shape.cast(o, d)
+        else:
+            ot, dt = torch.from_numpy(o), torch.from_numpy(d)
+            hit_t, t = sphere_trace(scene.shape, ot, dt)
+            hit, depth = hit_t.numpy(), t.numpy()
+            pts = o + depth[:, None] * d
+            nrm = sdf_normals(scene.shape, torch.from_numpy(pts[hit])).numpy() if need_normals else None
+            uv = None
+            if nrm is not None:
+                full = np.zeros_like(pts)
+                full[hit] = nrm
+                nrm = full
+        img = np.zeros((H * W, 3))
+        if hit.any():
+            col = albedo_of(scene, pts[hit], None if uv is None else uv[hit], mesh_shape.texture if mesh_shape else None)
+            if scene.lighting.kind == "lambertian":
+                n = nrm[hit]
+                shade = np.full(n.shape[0], scene.lighting.ambient)
+                for lx, ly, lz, li in scene.lighting.lights:
+                    ldir = np.array([lx, ly, lz]) / np.linalg.norm([lx, ly, lz])
+                    shade += li * np.clip(n @ ldir, 0, None)
+                col = col * shade[:, None]
+            elif scene.lighting.kind != "none":
+                raise ValueError(f"unknown lighting '{scene.lighting.kind}' (none, lambertian)")
+            if "specular" in listed:
+                e = listed["specular"]
+                n = nrm[hit]
+                for lx, ly, lz, li in (scene.lighting.lights or [[0.4, 0.5, 0.8, 1.0]]):
+                    ldir = np.array([lx, ly, lz]) / np.linalg.norm([lx, ly, lz])
+                    hv = ldir - d[hit]
+                    hv /= np.linalg.norm(hv, axis=1, keepdims=True)
+                    col = col + e.amount * li * np.clip((n * hv).sum(1), 0, None)[:, None] ** e.shininess
+            img[hit] = col
+        bg = scene.background
+        if bg.kind == "constant":
+            img[~hit] = bg.color
+        elif bg.kind == "backdrop":
+            ob, db = o[~hit], d[~hit]
+            b = (ob * db).sum(1)
+            c2 = (ob * ob).sum(1) - bg.radius ** 2
+            t = -b + np.sqrt(np.clip(b * b - c2, 0, None))
+            img[~hit] = procedural_noise((ob + t[:, None] * db) / bg.radius, bg.scale, bg.seed) * 0.9
+        elif bg.kind != "none":
+            raise ValueError(f"unknown background '{bg.kind}' (none, constant, backdrop)")
+        img = img.reshape(H, W, 3)
+        if "exposure" in listed:
+            img = img * (1 + rng.uniform(-1, 1) * listed["exposure"].amount)
+        if "blur" in listed:
+            img = cv2.GaussianBlur(img, (0, 0), listed["blur"].sigma)
+        if "noise" in listed:
+            img = img + rng.normal(0, listed["noise"].sigma, img.shape)
+        imgs.append(np.clip(img, 0, 1))
+        masks.append(hit.reshape(H, W))
+        depths.append(np.where(hit, depth, 0.0).reshape(H, W))
+    for name, on in [("normals", need_normals), (f"lighting:{scene.lighting.kind}", scene.lighting.kind != "none"),
+                     (f"background:{scene.background.kind}", scene.background.kind != "none")]:
+        if on and name not in passes:
+            passes.append(name)
+    for e in scene.effects:
+        if e.kind not in ("noise", "exposure", "distortion", "blur", "specular"):
+            raise ValueError(f"unknown effect '{e.kind}' (noise, exposure, distortion, blur, specular)")
+        if f"effect:{e.kind}" not in passes:
+            passes.append(f"effect:{e.kind}")
+    return np.stack(imgs), np.stack(masks), np.stack(depths)
+
+
+def distort(images: np.ndarray, masks: np.ndarray, K: np.ndarray, k1: float):
+    """Apply radial distortion x_d = x_u (1 + k1 r_u²) to images and masks (pinhole K)."""
+    H, W = images.shape[1:3]
+    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    xd, yd = (jj - K[0, 2]) / K[0, 0], (ii - K[1, 2]) / K[1, 1]
+    xu, yu = xd.copy(), yd.copy()
+    for _ in range(20):  # invert the distortion by fixed point
+        r2 = xu * xu + yu * yu
+        xu, yu = xd / (1 + k1 * r2), yd / (1 + k1 * r2)
+    mx = (xu * K[0, 0] + K[0, 2] - 0.5).astype(np.float32)
+    my = (yu * K[1, 1] + K[1, 2] - 0.5).astype(np.float32)
+    out_i = np.stack([cv2.remap(im.astype(np.float32), mx, my, cv2.INTER_LINEAR) for im in images])
+    out_m = np.stack([cv2.remap(m.astype(np.float32), mx, my, cv2.INTER_LINEAR) > 0.5 for m in masks])
+    return out_i, out_m
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    if img.ndim == 3:
+        img = cv2.cvtColor((img * 255).round().clip(0, 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
+    cv2.imwrite(str(path), img)
+
+
+def gt_mesh(scene: Scene, mesh_shape: MeshShape | None, res: int = 256) -> trimesh.Trimesh:
+    """Ground-truth surface in the canonical frame."""
+    if mesh_shape is not None:
+        return mesh_shape.gt.copy()
+    lin = torch.linspace(-1, 1, res + 1, dtype=torch.float64)
+    g = torch.stack(torch.meshgrid(lin, lin, lin, indexing="ij"), -1).view(-1, 3)
+    vol = torch.cat([sdf(scene.shape, g[s : s + 500000]) for s in range(0, g.shape[0], 500000)])
+    v, f, _, _ = measure.marching_cubes(vol.view(res + 1, res + 1, res + 1).numpy(), 0.0, spacing=(2 / res,) * 3)
+    m = trimesh.Trimesh(v - 1.0, f, process=True)
+    if m.volume < 0:
+        m.invert()
+    return m
+
+
+def write_scene(scene: Scene, out: str | Path) -> dict:
+    """Render ``scene`` into workspace ``out``; returns the metadata written to gt/scene.json."""
+    t0 = time.perf_counter()
+    out = Path(out)
+    passes: list[str] = ["geometry", f"albedo:{scene.albedo.kind}"]
+    mesh_shape = MeshShape(scene.shape, scene.base_dir) if scene.shape.kind == "mesh" else None
+    s, off = float(scene.world_scale), np.asarray(scene.world_offset, float)
+    if not (s > 0 and np.isfinite(s)):
+        raise ValueError(f"world_scale must be a positive finite number, got {scene.world_scale}")
+    scale_mat = np.eye(4)
+    scale_mat[:3, :3] *= s
+    scale_mat[:3, 3] = off
+    for sub in ["images", "masks", "gt/depth", "gt/heldout/images", "gt/heldout/masks"]:
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    dist = {e.kind: e for e in scene.effects}.get("distortion")
+
+    def one_set(K, R, C, img_dir: Path, mask_dir: Path | None, cam_path: Path, depth_dir: Path | None, seed: int):
+        imgs, masks, depths = render_views(scene, K, R, C, mesh_shape, passes, seed)
+        if dist is not None and dist.k1 != 0.0:
+            imgs, masks = distort(imgs, masks, K[0], dist.k1)
+        Rw = R
+        tw = -np.einsum("nij,nj->ni", R, s * C + off)
+        save_cameras(cam_path, K, Rw, tw, scale_mat)
+        for i in range(len(K)):
+            name = f"{i:06d}"
+            _write_png(img_dir / f"{name}.png", imgs[i])
+            if mask_dir is not None:
+                _write_png(mask_dir / f"{name}.png", (masks[i] * 255).astype(np.uint8))
+            if depth_dir is not None:
+                np.save(depth_dir / f"{name}.npy", depths[i].astype(np.float32))
+        return imgs, masks, depths
+
+    K, R, C = camera_rig(scene)
+    imgs, masks, depths = one_set(K, R, C, out / "images", out / "masks" if scene.write_masks else None,
+                                  out / "cameras.npz", out / "gt" / "depth", 0)
+    (out / "gt" / "masks").mkdir(exist_ok=True)
+    for i in range(len(K)):
+        _write_png(out / "gt" / "masks" / f"{i:06d}.png", (masks[i] * 255).astype(np.uint8))
+    if not scene.write_masks:
+        (out / "masks").rmdir() if not any((out / "masks").iterdir()) else None
+    np.savez(out / "gt" / "cameras.npz", **dict(np.load(out / "cameras.npz")))
+    if scene.sparse_depth > 0:
+        (out / "depth").mkdir(exist_ok=True)
+        rng = np.random.default_rng(scene.cameras.seed + 7)
+        for i in range(len(K)):
+            ii, jj = np.nonzero(masks[i])
+            sel = rng.choice(len(ii), size=min(scene.sparse_depth, len(ii)), replace=False) if len(ii) else []
+            uv = np.stack([jj[sel] + 0.5, ii[sel] + 0.5], 1).astype(np.float32) if len(ii) else np.zeros((0, 2))
+            d = depths[i][ii[sel], jj[sel]].astype(np.float32) if len(ii) else np.zeros(0)
+            np.savez(out / "depth" / f"{i:06d}.npz", uv=uv, depth=d, confidence=np.ones_like(d))
+        passes.append("sparse_depth")
+    Kh, Rh, Ch = camera_rig(scene, heldout=True)
+    if len(Kh):
+        one_set(Kh, Rh, Ch, out / "gt/heldout/images", out / "gt/heldout/masks", out / "gt/heldout/cameras.npz",
+                None, 1)
+    mesh = gt_mesh(scene, mesh_shape)
+    mesh.apply_transform(scale_mat)
+    mesh.export(out / "gt" / "mesh.ply")
+    meta = {"scene": asdict(scene), "passes": passes, "seconds": round(time.perf_counter() - t0, 3),
+            "n_views": int(len(K)), "n_heldout": int(len(Kh))}
+    (out / "gt" / "scene.json").write_text(json.dumps(meta, indent=1))
+    return meta

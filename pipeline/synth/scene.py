@@ -1,0 +1,156 @@
+"""Synthetic scene description: plain data (YAML ↔ dataclasses).
+
+A scene lists its shape, albedo, background, lighting and optional effects; the renderer computes only
+what is listed (``render.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+@dataclass
+class Shape:
+    """Geometry in the canonical frame (object inside the unit sphere)."""
+
+    kind: str = "torus"
+    """sphere | box | torus | shell | union | mesh."""
+    radius: float = 0.5
+    """sphere radius; torus major radius; shell outer radius."""
+    minor: float = 0.2
+    """torus minor radius; shell thickness."""
+    size: list[float] = field(default_factory=lambda: [0.4, 0.4, 0.4])
+    """box half extents."""
+    center: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    """offset of the primitive."""
+    parts: list[dict] = field(default_factory=list)
+    """union: a list of Shape dicts."""
+    path: str = ""
+    """mesh: an OBJ/PLY file; relative paths are relative to the scene file."""
+    fit_radius: float = 0.8
+    """mesh: scale so its bounding sphere has this radius (centred at the origin)."""
+
+
+@dataclass
+class Albedo:
+    kind: str = "checker"
+    """constant | checker | noise | texture (mesh UV texture)."""
+    color: list[float] = field(default_factory=lambda: [0.8, 0.5, 0.3])
+    """constant colour / first checker colour."""
+    color2: list[float] = field(default_factory=lambda: [0.2, 0.3, 0.7])
+    """second checker colour."""
+    scale: float = 6.0
+    """checker cells / noise frequency per unit length."""
+    seed: int = 1
+
+
+@dataclass
+class Background:
+    kind: str = "none"
+    """none (black) | constant | backdrop (textured sphere around the scene, for SfM features)."""
+    color: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    radius: float = 6.0
+    """backdrop sphere radius (canonical units)."""
+    scale: float = 3.0
+    """backdrop noise frequency."""
+    seed: int = 2
+
+
+@dataclass
+class Lighting:
+    kind: str = "none"
+    """none (albedo only) | lambertian."""
+    ambient: float = 0.35
+    lights: list[list[float]] = field(default_factory=lambda: [[0.4, 0.5, 0.8, 0.7]])
+    """directional lights: [dx, dy, dz, intensity]."""
+
+
+@dataclass
+class Effect:
+    kind: str = "noise"
+    """noise (sigma) | exposure (amount: max relative gain change) | distortion (k1) | blur (sigma px) |
+    specular (amount, shininess)."""
+    sigma: float = 0.01
+    amount: float = 0.2
+    k1: float = 0.0
+    shininess: float = 32.0
+
+
+@dataclass
+class CameraRig:
+    n_views: int = 24
+    width: int = 128
+    height: int = 128
+    radius: float = 2.6
+    """distance of the cameras to the origin (canonical units)."""
+    fov_deg: float = 40.0
+    elevation: list[float] = field(default_factory=lambda: [-20.0, 50.0])
+    """min/max elevation in degrees (views on a spiral)."""
+    heldout: int = 0
+    """extra views (between the training views) written to gt/heldout for evaluation."""
+    seed: int = 0
+
+
+@dataclass
+class Scene:
+    name: str = "scene"
+    shape: Shape = field(default_factory=Shape)
+    albedo: Albedo = field(default_factory=Albedo)
+    background: Background = field(default_factory=Background)
+    lighting: Lighting = field(default_factory=Lighting)
+    effects: list[Effect] = field(default_factory=list)
+    cameras: CameraRig = field(default_factory=CameraRig)
+    world_scale: float = 1.0
+    """size of the canonical unit in 'SfM' units (tests of extreme scales)."""
+    world_offset: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    sparse_depth: int = 0
+    """points per view written to depth/ (0: none)."""
+    write_masks: bool = True
+    """write GT masks into masks/ (as user masks would be)."""
+    base_dir: str = ""
+    """folder of the scene file (set by load_scene)."""
+
+
+def _build(cls, data: Any):
+    if not is_dataclass(cls):
+        return data
+    if data is None:
+        return cls()
+    if not isinstance(data, dict):
+        raise ValueError(f"expected a mapping for {cls.__name__}, got {data!r}")
+    known = {f.name: f for f in fields(cls)}
+    unknown = set(data) - set(known)
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} keys: {sorted(unknown)} (known: {sorted(known)})")
+    kw = {}
+    for k, v in data.items():
+        ft = known[k].type
+        sub = {"shape": Shape, "albedo": Albedo, "background": Background, "lighting": Lighting,
+               "cameras": CameraRig}.get(k)
+        if cls is Scene and k == "effects":
+            kw[k] = [_build(Effect, e) for e in (v or [])]
+        elif cls is Scene and sub is not None:
+            kw[k] = _build(sub, v)
+        else:
+            kw[k] = v
+        del ft
+    return cls(**kw)
+
+
+def scene_from_dict(d: dict, base_dir: str | Path = ".") -> Scene:
+    s = _build(Scene, d)
+    s.base_dir = str(base_dir)
+    return s
+
+
+def load_scene_file(path: str | Path) -> Scene:
+    path = Path(path)
+    try:
+        d = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f"{path}: cannot read scene ({exc})") from exc
+    return scene_from_dict(d or {}, path.parent)

@@ -1,0 +1,40 @@
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+SHARED = ROOT.parent / "shared" / "data"
+
+torch.set_num_threads(2)
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)
+
+
+def small_scene(**over):
+    """8 views at 64 px of a checker torus (renders in well under a second)."""
+    from pipeline.synth import scene_from_dict
+
+    d = {"name": "small", "shape": {"kind": "torus", "radius": 0.5, "minor": 0.2},
+         "albedo": {"kind": "checker", "scale": 4.0},
+         "cameras": {"n_views": 8, "width": 64, "height": 64, "radius": 2.6, "fov_deg": 40}}
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(d.get(k), dict):
+            d[k] = {**d[k], **v}
+        else:
+            d[k] = v
+    return scene_from_dict(d, ROOT)
+
+
+@pytest.fixture(scope="session")
+def small_ws(tmp_path_factory):
+    from pipeline.synth import write_scene
+
+    ws = tmp_path_factory.mktemp("small")
+    write_scene(small_scene(sparse_depth=50), ws)
+    return ws

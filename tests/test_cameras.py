@@ -1,0 +1,81 @@
+"""Cameras: decomposition round trip, pixel-centre convention, unit-sphere bounds, loading errors."""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from dvr.cameras import decompose_projection, load_cameras, pixel_rays, project, save_cameras, sphere_bounds
+
+
+def _cam(seed=0):
+    rng = np.random.default_rng(seed)
+    K = np.array([[300.0, 0.5, 160.0], [0, 310.0, 120.0], [0, 0, 1]])
+    A = rng.normal(size=(3, 3))
+    R, _ = np.linalg.qr(A)
+    if np.linalg.det(R) < 0:
+        R = -R
+    t = rng.normal(size=3) + [0, 0, 4]
+    return K, R, t
+
+
+def test_decompose_round_trip_any_projective_scale():
+    K, R, t = _cam()
+    P = K @ np.concatenate([R, t[:, None]], 1)
+    for s in (1.0, -3.0, 1e-6, 1e6):
+        K2, R2, t2 = decompose_projection(s * P)
+        assert np.allclose(K2, K) and np.allclose(R2, R) and np.allclose(t2, t)
+
+
+def test_decompose_bad_input():
+    with pytest.raises(ValueError, match="singular"):
+        decompose_projection(np.zeros((3, 4)))
+    with pytest.raises(ValueError, match="NaN"):
+        decompose_projection(np.full((3, 4), np.nan))
+
+
+def test_pixel_centre_convention_matches_grid_sample():
+    """A ray through pixel (i, j)'s centre projects to (j + .5, i + .5); grid_sample(align_corners=False)
+    at that point returns exactly pixel (i, j)."""
+    K, R, t = _cam(1)
+    H, W, i, j = 240, 320, 37, 201
+    uv = torch.tensor([[j + 0.5, i + 0.5]], dtype=torch.float64)
+    o, d = pixel_rays(torch.from_numpy(K), torch.from_numpy(R), torch.from_numpy(t), uv)
+    P = torch.from_numpy(K @ np.concatenate([R, t[:, None]], 1))[None]
+    back, z = project(o + 2.0 * d, P)
+    assert torch.allclose(back[0], uv, atol=1e-9) and z.item() > 0
+    img = torch.arange(H * W, dtype=torch.float64).view(1, 1, H, W)
+    g = torch.stack([back[..., 0] / W * 2 - 1, back[..., 1] / H * 2 - 1], -1).view(1, 1, 1, 2)
+    val = F.grid_sample(img, g, align_corners=False)
+    assert val.item() == pytest.approx(i * W + j)
+
+
+def test_sphere_bounds_hits_misses_inside():
+    o = torch.tensor([[-3.0, 0, 0], [-3.0, 2.0, 0], [0.0, 0, 0]])
+    w = torch.tensor([[1.0, 0, 0], [1.0, 0, 0], [1.0, 0, 0]])
+    near, far, valid = sphere_bounds(o, w)
+    assert valid.tolist() == [True, False, True]
+    assert near.tolist() == pytest.approx([2.0, 0.0, 0.0]) and far.tolist() == pytest.approx([4.0, 0.0, 1.0])
+    assert torch.isfinite(near).all() and torch.isfinite(far).all()
+
+
+def test_save_load_normalized_frame(tmp_path):
+    K, R, t = _cam(2)
+    scale = np.diag([5.0, 5.0, 5.0, 1.0])
+    scale[:3, 3] = [10, -3, 7]
+    save_cameras(tmp_path / "cameras.npz", K[None], R[None], t[None], scale)
+    cams = load_cameras(tmp_path / "cameras.npz")
+    c_sfm = -R.T @ t
+    assert np.allclose(cams.centers[0] * 5 + scale[:3, 3], c_sfm)
+    assert np.allclose(cams.K[0], K) and np.allclose(cams.R[0], R)
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(ValueError, match="cannot read"):
+        load_cameras(tmp_path / "nope.npz")
+    np.savez(tmp_path / "c.npz", foo=np.eye(3))
+    with pytest.raises(ValueError, match="world_mat"):
+        load_cameras(tmp_path / "c.npz")
+    np.savez(tmp_path / "d.npz", world_mat_0=np.eye(4)[:3])
+    with pytest.raises(ValueError, match="2 images"):
+        load_cameras(tmp_path / "d.npz", n_views=2)
