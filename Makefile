@@ -41,7 +41,8 @@ bench-core: setup
 
 # Stages available today: train, mesh (cameras/masks/depth/texture/report: see the open issues).
 reconstruct: setup
-	@test -n "$(IMAGES)" || (echo "usage: make reconstruct IMAGES=dir [MASKS=dir] [OUT=dir] [CONFIG=file]" && exit 2)
+	@if [ -z "$(IMAGES)" ] && [ ! -f "$(OUT)/cameras.npz" ]; then \
+	  echo "usage: make reconstruct OUT=workspace (with images/, masks/, cameras.npz) [CONFIG=file]"; exit 2; fi
 	$(PY) -m pipeline train $(OUT) --config $(CONFIG)
 	$(PY) -m pipeline mesh $(OUT) --config $(CONFIG)
 	@echo "done: $(OUT)/mesh/clean.ply"
