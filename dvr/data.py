@@ -117,6 +117,10 @@ def load_scene(ws: Path, device: torch.device, use_depth: bool = True, views: li
             z = np.load(f)
             uv, d = np.asarray(z["uv"], np.float32).reshape(-1, 2), np.asarray(z["depth"], np.float32).reshape(-1)
             ok = np.isfinite(d) & (d > 0) & np.isfinite(uv).all(1)
+            # a sparse depth is object evidence only where the mask agrees (table points inside the sphere)
+            h, w = masks[i].shape
+            ij = np.clip(np.floor(uv).astype(int), 0, [w - 1, h - 1])
+            ok &= masks[i][ij[:, 1], ij[:, 0]] > 0.5
             dv.append(np.full(ok.sum(), i)), duv.append(uv[ok]), dd.append(d[ok])
         if dv and sum(len(x) for x in dv) > 0:
             data.depth_views = torch.from_numpy(np.concatenate(dv)).to(device=device, dtype=torch.long)

@@ -32,3 +32,36 @@ def chamfer_fscore(pred: trimesh.Trimesh, gt: trimesh.Trimesh, n: int = 50000, t
     f = 2 * p * r / (p + r) if p + r > 0 else 0.0
     return {"chamfer": float(ch), "chamfer_rel": float(ch / diag), "fscore": f, "precision": p, "recall": r,
             "diag": diag}
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) minimising Σ|s R src + t − dst|² (Umeyama 1991); src, dst (N, 3), N ≥ 3."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+        raise ValueError(f"umeyama needs two (N≥3, 3) arrays, got {src.shape} and {dst.shape}")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1
+    R = U @ S @ Vt
+    var = (xs ** 2).sum() / len(src)
+    s = float(np.trace(np.diag(D) @ S) / var) if var > 0 else 1.0
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def pose_errors(centers_est: np.ndarray, R_est: np.ndarray, centers_gt: np.ndarray, R_gt: np.ndarray) -> dict:
+    """Camera centre and rotation errors after a Sim(3) alignment of the estimated centres onto the GT ones."""
+    s, R, t = umeyama(centers_est, centers_gt)
+    c = (s * (R @ centers_est.T)).T + t
+    dc = np.linalg.norm(c - centers_gt, axis=1)
+    # world→camera rotations: R_est_aligned = R_est R^T
+    rel = np.einsum("nij,nkj->nik", R_est @ R.T, R_gt)
+    ang = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    radius = float(np.linalg.norm(centers_gt - centers_gt.mean(0), axis=1).mean())
+    return {"center_err_mean": float(dc.mean()), "center_err_max": float(dc.max()), "orbit_radius": radius,
+            "center_err_rel_max": float(dc.max() / radius), "rot_err_deg_mean": float(ang.mean()),
+            "rot_err_deg_max": float(ang.max()), "scale": s}

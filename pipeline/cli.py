@@ -17,8 +17,57 @@ import tyro
 
 from dvr.trainer import TrainConfig
 
-from .config import Config, MeshConfig, load_config
+from .cameras_config import CamerasConfig, DepthConfig
+from .config import Config, MasksConfig, MeshConfig, load_config
 from .workspace import StageError, Workspace
+
+
+@dataclass
+class CamerasArgs:
+    """Estimate cameras with COLMAP (reads the photos; writes sfm/, images/, cameras.npz, points.ply)."""
+
+    workspace: tyro.conf.Positional[Path]
+    """Workspace folder (created; must not be the photo folder)."""
+    images: Optional[Path] = None
+    """Folder of photos (never modified)."""
+    cameras: Optional[Path] = None
+    """Given cameras (IDR/DVR/NeuS cameras.npz, one world_mat_i per photo in sorted order): skip SfM."""
+    config: Optional[Path] = None
+    """YAML preset; options below override it."""
+    force: bool = False
+    """Redo the stage even when its outputs are up to date."""
+    cameras_cfg: CamerasConfig = field(default_factory=CamerasConfig)
+    """Camera options."""
+
+
+@dataclass
+class MasksArgs:
+    """Object masks (reads images/, cameras.npz, sfm/; writes masks/*.png, masks/overlays/, masks/confidence.json)."""
+
+    workspace: tyro.conf.Positional[Path]
+    """Workspace folder."""
+    masks: Optional[Path] = None
+    """Folder of user masks named like the photos; automatic masks without it."""
+    config: Optional[Path] = None
+    """YAML preset; options below override it."""
+    force: bool = False
+    """Redo the stage even when its outputs are up to date."""
+    masks_cfg: MasksConfig = field(default_factory=MasksConfig)
+    """Mask options."""
+
+
+@dataclass
+class DepthArgs:
+    """Sparse depth from the SfM tracks (reads sfm/, cameras.npz; writes depth/*.npz)."""
+
+    workspace: tyro.conf.Positional[Path]
+    """Workspace folder."""
+    config: Optional[Path] = None
+    """YAML preset; options below override it."""
+    force: bool = False
+    """Redo the stage even when its outputs are up to date."""
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    """Depth options."""
 
 
 @dataclass
@@ -59,14 +108,14 @@ class SynthArgs:
     """Output workspace folder."""
 
 
-def _parse(cls, section: str | None, argv: list[str], prog: str):
+def _parse(cls, section: str | None, argv: list[str], prog: str, field_name: str | None = None):
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--config", type=Path, default=None)
     known, _ = pre.parse_known_args(argv)
     cfg = load_config(known.config) if section else Config()
     default = cls(**{f.name: tyro.MISSING for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING
                      and f.default_factory is dataclasses.MISSING},
-                  **({section: getattr(cfg, section), "config": known.config} if section else {}))
+                  **({field_name or section: getattr(cfg, section), "config": known.config} if section else {}))
     return tyro.cli(cls, default=default, args=argv, prog=prog)
 
 
@@ -77,6 +126,27 @@ def _synth(argv):
     meta = write_scene(load_scene_file(a.scene), a.out)
     print(f"synth: {meta['n_views']} views (+{meta['n_heldout']} held out) in {meta['seconds']:.1f} s → {a.out}; "
           f"passes: {', '.join(meta['passes'])}")
+
+
+def _cameras(argv):
+    from . import cameras
+
+    a = _parse(CamerasArgs, "cameras", argv, "python -m pipeline cameras", "cameras_cfg")
+    cameras.run(Workspace(a.workspace), a.images, a.cameras_cfg, a.cameras, a.force)
+
+
+def _masks(argv):
+    from . import masks
+
+    a = _parse(MasksArgs, "masks", argv, "python -m pipeline masks", "masks_cfg")
+    masks.run(Workspace(a.workspace), a.masks_cfg, a.masks, a.force)
+
+
+def _depth(argv):
+    from . import depth
+
+    a = _parse(DepthArgs, "depth", argv, "python -m pipeline depth")
+    depth.run(Workspace(a.workspace), a.depth, a.force)
 
 
 def _train(argv):
@@ -93,7 +163,7 @@ def _mesh(argv):
     mesh.run(Workspace(a.workspace), a.mesh, a.force)
 
 
-COMMANDS = {"synth": _synth, "train": _train, "mesh": _mesh}
+COMMANDS = {"synth": _synth, "cameras": _cameras, "masks": _masks, "depth": _depth, "train": _train, "mesh": _mesh}
 
 
 def main(argv: list[str] | None = None) -> int:

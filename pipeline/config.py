@@ -20,6 +20,8 @@ import yaml
 
 from dvr.trainer import TrainConfig
 
+from .cameras_config import CamerasConfig, DepthConfig, MasksConfig
+
 
 @dataclass
 class MeshConfig:
@@ -47,6 +49,12 @@ class MeshConfig:
 class Config:
     """All stage configs."""
 
+    cameras: CamerasConfig = field(default_factory=CamerasConfig)
+    """Stage ``cameras``."""
+    masks: MasksConfig = field(default_factory=MasksConfig)
+    """Stage ``masks``."""
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    """Stage ``depth``."""
     train: TrainConfig = field(default_factory=TrainConfig)
     """Stage ``train``."""
     mesh: MeshConfig = field(default_factory=MeshConfig)

@@ -135,18 +135,22 @@ def sdf_normals(shape: Shape, p: torch.Tensor, h: float = 1e-4) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------- textures
-def procedural_noise(p: np.ndarray, scale: float, seed: int) -> np.ndarray:
-    """Smooth multi-scale colour noise on 3-D points, (M, 3) in [0, 1] — rich in corners for SIFT."""
+def procedural_noise(p: np.ndarray, scale: float, seed: int, levels: int = 0) -> np.ndarray:
+    """Multi-scale colour noise on 3-D points, (M, 3) in [0, 1]. ``levels`` > 0 quantises each channel to
+    that many steps: sharp edges and corners, which SIFT needs to register views."""
     rng = np.random.default_rng(seed)
     out = np.zeros((p.shape[0], 3))
     for c in range(3):
         acc = np.zeros(p.shape[0])
         for k in range(24):
-            f = scale * 2 ** rng.uniform(0, 2.5)
+            f = scale * 2 ** rng.uniform(0, 3.0)
             v = rng.normal(size=3)
             v /= np.linalg.norm(v)
             acc += np.sin(f * 2 * np.pi * (p @ v) + rng.uniform(0, 2 * np.pi)) / (1 + 0.3 * k) ** 0.5
-        out[:, c] = 0.5 + 0.5 * np.tanh(acc / 2.0)
+        val = 0.5 + 0.5 * np.tanh(acc / 2.0)
+        if levels > 0:
+            val = (np.floor(val * levels) + 0.5) / levels
+        out[:, c] = val
     return out
 
 
@@ -158,7 +162,7 @@ def albedo_of(scene: Scene, pts: np.ndarray, uv: np.ndarray | None, tex: np.ndar
         k = np.floor(pts * a.scale).sum(1).astype(int) % 2
         return np.where(k[:, None] == 0, np.asarray(a.color), np.asarray(a.color2))
     if a.kind == "noise":
-        return procedural_noise(pts, a.scale, a.seed)
+        return procedural_noise(pts, a.scale, a.seed, a.levels)
     if a.kind == "texture":
         if uv is None or tex is None:
             raise ValueError("albedo 'texture' needs a mesh shape with UVs and a texture image")
@@ -254,7 +258,9 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
             b = (ob * db).sum(1)
             c2 = (ob * ob).sum(1) - bg.radius ** 2
             t = -b + np.sqrt(np.clip(b * b - c2, 0, None))
-            img[~hit] = procedural_noise((ob + t[:, None] * db) / bg.radius, bg.scale, bg.seed) * 0.9
+            col = procedural_noise((ob + t[:, None] * db) / bg.radius, bg.scale, bg.seed, bg.levels)
+            gray = col.mean(1, keepdims=True)
+            img[~hit] = (gray + bg.saturation * (col - gray)) * 0.9
         elif bg.kind != "none":
             raise ValueError(f"unknown background '{bg.kind}' (none, constant, backdrop)")
         img = img.reshape(H, W, 3)

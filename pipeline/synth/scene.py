@@ -45,6 +45,8 @@ class Albedo:
     """second checker colour."""
     scale: float = 6.0
     """checker cells / noise frequency per unit length."""
+    levels: int = 0
+    """noise: quantise to this many levels per channel (sharp edges for SfM; 0 = smooth)."""
     seed: int = 1
 
 
@@ -57,6 +59,10 @@ class Background:
     """backdrop sphere radius (canonical units)."""
     scale: float = 3.0
     """backdrop noise frequency."""
+    levels: int = 4
+    """backdrop noise quantisation levels (sharp edges for SfM)."""
+    saturation: float = 1.0
+    """backdrop colour saturation (0: grey)."""
     seed: int = 2
 
 

@@ -1,0 +1,58 @@
+"""Configs of the stages ``cameras`` and ``masks`` (kept apart so config.py does not import pycolmap)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass
+class CamerasConfig:
+    """Camera estimation (stage ``cameras``)."""
+
+    max_side_sfm: int = 1600
+    """Longest image side SfM works on (photos are downscaled to it, never upscaled)."""
+    max_side: int = 400
+    """Longest side of the training images written to images/."""
+    matching: Literal["auto", "exhaustive", "sequential"] = "auto"
+    """Pairs to match: 'auto' = exhaustive up to 80 images, sequential (with loop closure off) beyond."""
+    mapper: Literal["incremental", "global"] = "incremental"
+    """COLMAP incremental mapping, or global mapping (GLOMAP)."""
+    camera_model: str = "SIMPLE_RADIAL"
+    """COLMAP camera model estimated before undistortion."""
+    max_features: int = 8192
+    """SIFT features per image."""
+    min_registered_fraction: float = 0.5
+    """Fail when fewer images than this fraction register (the list of unregistered images is printed)."""
+    radius_margin: float = 1.1
+    """Unit sphere radius = margin × robust object radius from the sparse points."""
+    min_track_length: int = 3
+    """Sparse points used for normalisation need at least this many observations."""
+
+
+@dataclass
+class MasksConfig:
+    """Object masks (stage ``masks``)."""
+
+    hull_res: int = 128
+    """Resolution of the visual hull used for multi-view consistency."""
+    carve_min_views: int = 2
+    """A point is background only if at least this many views see it outside their mask."""
+    grabcut_iters: int = 5
+    """GrabCut iterations per pass."""
+    seed_radius: int = 2
+    """Radius (px) of the disc drawn around each projected seed point."""
+    band_px: int = 3
+    """Half-width of the uncertain band around the hull silhouette in the refinement pass."""
+    user_threshold: int = 127
+    """User masks: grey values above this are object."""
+
+
+@dataclass
+class DepthConfig:
+    """Sparse depth from SfM tracks (stage ``depth``)."""
+
+    min_track_length: int = 3
+    """Keep points observed in at least this many images."""
+    max_reprojection_error: float = 1.5
+    """Keep points whose mean reprojection error (px, SfM resolution) is at most this."""

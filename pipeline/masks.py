@@ -1,0 +1,238 @@
+"""Stage ``masks``: one binary mask per image (``masks/<stem>.png``), overlays and per-image confidence.
+
+User masks (``--masks DIR``) are matched by stem, validated (readable, binary-ish) and transformed like their
+images (EXIF orientation applied, resized to the image size). Automatic masks use no learned model:
+
+1. seeds from geometry: sparse SfM points inside the object's unit sphere are object, points the view
+   observes far outside it are background (visibility from the COLMAP tracks in ``sfm/``), and everything
+   outside the projected unit sphere is background (the object lies inside it by construction);
+2. GrabCut in every image, seeded by those;
+3. multi-view consistency: the visual hull of all masks, carving a point only when ≥ ``carve_min_views``
+   views see it as background, is re-projected into every view, and GrabCut refines that silhouette to the
+   image edges — a mistake in one view is outvoted by the others;
+4. confidence = IoU between a view's first GrabCut mask and the hull's silhouette.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from dvr.cameras import load_cameras
+from dvr.data import list_images
+from dvr.hull import hull_logits
+from dvr.march import HIT, INSIDE, find_surface
+
+from .cameras_config import MasksConfig
+from .config import config_hash
+from .workspace import StageError, Workspace
+
+
+# ----------------------------------------------------------------------------- user masks
+def import_user_masks(ws: Workspace, names: list[str], sizes: list[tuple[int, int]], mask_dir: Path,
+                      cfg: MasksConfig) -> dict:
+    if not mask_dir.is_dir():
+        raise StageError(f"{mask_dir}: not a folder; pass --masks DIR with one mask per photo (same file name)")
+    files = {p.stem: p for p in mask_dir.iterdir() if p.is_file()}
+    missing = [n for n in names if n not in files]
+    if missing:
+        raise StageError(f"{mask_dir}: no mask for {', '.join(missing[:5])}{'...' if len(missing) > 5 else ''}; "
+                         "name each mask like its photo (any image extension)")
+    conf = {}
+    for n, (w, h) in zip(names, sizes):
+        m = cv2.imread(str(files[n]), cv2.IMREAD_GRAYSCALE)  # EXIF orientation applied, like the photos
+        if m is None:
+            raise StageError(f"{files[n]}: unreadable mask; save it as PNG (0 = background, 255 = object)")
+        mid = ((m > 32) & (m < 223)).mean()
+        if mid > 0.05:
+            raise StageError(f"{files[n]}: {100 * mid:.0f} % of pixels are neither black nor white; save a binary mask")
+        ar_m, ar_i = m.shape[1] / m.shape[0], w / h
+        if abs(ar_m - ar_i) > 0.02 * ar_i:
+            raise StageError(f"{files[n]}: mask is {m.shape[1]}x{m.shape[0]}, its photo's aspect is {w}x{h}; "
+                             "make the mask the size of the photo")
+        m = cv2.resize(m, (w, h), interpolation=cv2.INTER_AREA) > cfg.user_threshold
+        cv2.imwrite(str(ws.masks / f"{n}.png"), m.astype(np.uint8) * 255)
+        conf[n] = 1.0
+    return conf
+
+
+# ----------------------------------------------------------------------------- automatic masks
+def _tracks(ws: Workspace, names: list[str]):
+    """Sparse points (SfM frame) and, per image, the ids of the points it observes (None without sfm/)."""
+    model = ws.root / "sfm" / "undistorted" / "sparse"
+    if not model.exists():
+        return None, None
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(model)
+    ids = list(rec.points3D.keys())
+    index = {pid: k for k, pid in enumerate(ids)}
+    xyz = np.array([rec.points3D[p].xyz for p in ids]).reshape(-1, 3)
+    obs: dict[str, list[int]] = {n: [] for n in names}
+    for iid in rec.reg_image_ids():
+        im = rec.image(iid)
+        stem = im.name.rsplit(".", 1)[0]
+        if stem in obs:
+            obs[stem] = [index[p.point3D_id] for p in im.points2D if p.has_point3D()]
+    return xyz, obs
+
+
+def _sphere_disc(P: np.ndarray, h: int, w: int, n: int = 256) -> np.ndarray:
+    """Mask of the projection of the unit sphere (as the hull of projected sample points)."""
+    u = np.random.default_rng(0).normal(size=(4096, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    x = (P @ np.concatenate([u, np.ones((len(u), 1))], 1).T).T
+    front = x[:, 2] > 1e-9
+    disc = np.zeros((h, w), np.uint8)
+    if front.sum() < 3 or not front.all():
+        disc[:] = 1  # camera inside/near the sphere: no constraint
+        return disc
+    uv = x[:, :2] / x[:, 2:]
+    hull = cv2.convexHull(uv.astype(np.float32) - 0.5)
+    cv2.fillConvexPoly(disc, np.round(hull).astype(np.int32), 1)
+    return disc
+
+
+def grabcut(img: np.ndarray, init: np.ndarray, iters: int) -> np.ndarray:
+    """GrabCut from a label image (cv2.GC_*); returns a bool mask. Degenerate seeds fall back to the init."""
+    has_fg = np.isin(init, (cv2.GC_FGD, cv2.GC_PR_FGD)).any()
+    has_bg = np.isin(init, (cv2.GC_BGD, cv2.GC_PR_BGD)).any()
+    if not (has_fg and has_bg):
+        return np.isin(init, (cv2.GC_FGD, cv2.GC_PR_FGD))
+    m = init.copy()
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    try:
+        cv2.grabCut(img, m, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK)
+    except cv2.error:
+        return np.isin(init, (cv2.GC_FGD, cv2.GC_PR_FGD))
+    return np.isin(m, (cv2.GC_FGD, cv2.GC_PR_FGD))
+
+
+def seed_labels(P: np.ndarray, h: int, w: int, pts_n: np.ndarray | None, vis: list[int] | None,
+                r: int) -> np.ndarray:
+    lab = np.full((h, w), cv2.GC_PR_BGD, np.uint8)
+    disc = _sphere_disc(P, h, w)
+    lab[disc > 0] = cv2.GC_PR_FGD
+    lab[disc == 0] = cv2.GC_BGD
+    if pts_n is not None and vis is not None and len(vis):
+        p = pts_n[vis]
+        x = (P @ np.concatenate([p, np.ones((len(p), 1))], 1).T).T
+        ok = x[:, 2] > 1e-9
+        uv = np.round(x[ok, :2] / x[ok, 2:] - 0.5).astype(int)
+        rad = np.linalg.norm(p[ok], axis=1)
+        for (u, v), rr in zip(uv, rad):
+            if 0 <= u < w and 0 <= v < h:
+                if rr < 0.9:
+                    cv2.circle(lab, (int(u), int(v)), r, cv2.GC_FGD, -1)
+                elif rr > 1.2:
+                    cv2.circle(lab, (int(u), int(v)), r, cv2.GC_BGD, -1)
+    return lab
+
+
+@torch.no_grad()
+def hull_silhouettes(P: torch.Tensor, masks: torch.Tensor, cams, res: int, min_views: int) -> np.ndarray:
+    """Render the visual hull (carving with ``min_views``) into every view: (N, H, W) bool."""
+    lg = hull_logits(P, masks, res=res, min_views=min_views, slope_cells=1.0)
+    grid = lg.permute(2, 1, 0)[None, None]
+
+    def f(p):
+        return F.grid_sample(grid, p.view(1, -1, 1, 1, 3), align_corners=True, padding_mode="border").view(-1)
+
+    N, H, W = masks.shape
+    jj, ii = torch.meshgrid(torch.arange(W) + 0.5, torch.arange(H) + 0.5, indexing="xy")
+    uv = torch.stack([jj, ii, torch.ones_like(jj)], -1).view(-1, 3).double()
+    out = np.zeros((N, H, W), bool)
+    for i in range(N):
+        K, R, t = (torch.from_numpy(a) for a in (cams.K[i], cams.R[i], cams.t[i]))
+        d = (uv @ torch.linalg.inv(K).T) @ R
+        d = (d / d.norm(dim=-1, keepdim=True)).float()
+        o = (-(R.T @ t)).float().expand_as(d)
+        res_ = find_surface(f, o.contiguous(), d.contiguous(), n_steps=2 * res, n_secant=0)
+        out[i] = ((res_.status == HIT) | (res_.status == INSIDE)).view(H, W).numpy()
+    return out
+
+
+def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> dict:
+    cams = load_cameras(ws.cameras, n_views=len(names))
+    Pn = cams.P
+    xyz, obs = _tracks(ws, names)
+    pts_n = None
+    if xyz is not None and len(xyz):
+        S = cams.scale_mat
+        pts_n = (xyz - S[:3, 3]) / S[0, 0]
+    first, seeds = [], []
+    for i, (n, img) in enumerate(zip(names, imgs)):
+        h, w = img.shape[:2]
+        lab = seed_labels(Pn[i], h, w, pts_n, obs.get(n) if obs else None, cfg.seed_radius)
+        seeds.append(lab)
+        first.append(grabcut(img, lab, cfg.grabcut_iters))
+    first_t = torch.from_numpy(np.stack(first).astype(np.float32))
+    sil = hull_silhouettes(torch.from_numpy(Pn).float(), first_t, cams, cfg.hull_res, cfg.carve_min_views)
+    conf = {}
+    k = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
+    for i, (n, img) in enumerate(zip(names, imgs)):
+        # the hull silhouette is an upper bound (outside it: background); inside, the point seeds stay hard
+        # and GrabCut decides the rest (holes the hull cannot carve, e.g. seen only through the object)
+        s = sil[i].astype(np.uint8)
+        lab = np.full(s.shape, cv2.GC_BGD, np.uint8)
+        lab[cv2.dilate(s, k) > 0] = cv2.GC_PR_BGD
+        lab[s > 0] = cv2.GC_PR_FGD
+        hard = (seeds[i] == cv2.GC_FGD) | ((seeds[i] == cv2.GC_BGD) & (cv2.dilate(s, k) > 0))
+        lab[hard] = seeds[i][hard]
+        final = grabcut(img, lab, cfg.grabcut_iters)
+        cv2.imwrite(str(ws.masks / f"{n}.png"), final.astype(np.uint8) * 255)
+        inter = (first[i] & sil[i]).sum()
+        union = (first[i] | sil[i]).sum()
+        conf[n] = float(inter / union) if union else 0.0
+    return conf
+
+
+def write_overlays(ws: Workspace, names: list[str], imgs: list[np.ndarray]) -> None:
+    out = ws.masks / "overlays"
+    out.mkdir(exist_ok=True)
+    for n, img in zip(names, imgs):
+        m = cv2.imread(str(ws.masks / f"{n}.png"), cv2.IMREAD_GRAYSCALE) > 127
+        ov = img.copy()
+        ov[~m] = (ov[~m] * 0.3).astype(np.uint8)
+        cnt, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(ov, cnt, -1, (0, 255, 0), 1)
+        cv2.imwrite(str(out / f"{n}.jpg"), ov, [cv2.IMWRITE_JPEG_QUALITY, 90])
+
+
+def run(ws: Workspace, cfg: MasksConfig, masks: Path | None = None, force: bool = False) -> bool:
+    ws.require(ws.images, ws.cameras, hint="run the cameras stage first")
+    paths = list_images(ws.images)
+    names = [p.stem for p in paths]
+    h = config_hash({"cfg": cfg.__dict__, "masks": str(masks)})
+    ins = [ws.images, ws.cameras] + ([Path(masks)] if masks else [])
+    outs = [ws.masks / f"{n}.png" for n in names]
+    if not force and ws.up_to_date("masks", h, ins, outs):
+        print(f"masks: up to date ({ws.masks})")
+        return False
+    ws.clear("masks")
+    t0 = time.perf_counter()
+    if ws.masks.exists():
+        shutil.rmtree(ws.masks)
+    ws.masks.mkdir(parents=True)
+    imgs = [cv2.imread(str(p), cv2.IMREAD_COLOR) for p in paths]
+    if masks is not None:
+        conf = import_user_masks(ws, names, [(im.shape[1], im.shape[0]) for im in imgs], Path(masks), cfg)
+    else:
+        conf = auto_masks(ws, names, imgs, cfg)
+    write_overlays(ws, names, imgs)
+    (ws.masks / "confidence.json").write_text(json.dumps(conf, indent=1))
+    low = [n for n, c in conf.items() if c < 0.8]
+    if low:
+        print(f"masks: low confidence for {', '.join(low)} (see {ws.masks / 'overlays'})", file=sys.stderr)
+    ws.mark_done("masks", h, time.perf_counter() - t0, {"mean_confidence": float(np.mean(list(conf.values())))})
+    print(f"masks: {len(names)} masks, mean confidence {np.mean(list(conf.values())):.3f} → {ws.masks}")
+    return True
+
