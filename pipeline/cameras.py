@@ -16,7 +16,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import trimesh
 
 from dvr.cameras import decompose_projection, save_cameras
 from dvr.data import IMAGE_EXTS
@@ -60,6 +59,17 @@ def read_upright(path: Path, max_side: int) -> np.ndarray:
     if s < 1.0:
         img = cv2.resize(img, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
     return img
+
+
+def write_points(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:
+    """Binary PLY of coloured points (also valid when empty)."""
+    head = ("ply\nformat binary_little_endian 1.0\nelement vertex %d\nproperty float x\nproperty float y\n"
+            "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    rec = np.zeros(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    if len(pts):
+        rec["x"], rec["y"], rec["z"] = pts.T
+        rec["r"], rec["g"], rec["b"] = cols.T
+    path.write_bytes((head % len(pts)).encode() + rec.tobytes())
 
 
 # ----------------------------------------------------------------------------- normalisation
@@ -214,8 +224,7 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
     Ps = Ks @ np.concatenate([Rs, ts[:, :, None]], 2)
     S = normalization(pts, Ps, sizes, centers, Rs[:, 2, :], cfg.radius_margin)
     save_cameras(ws.cameras, Ks, Rs, ts, S)
-    trimesh.PointCloud(pts if len(pts) else np.zeros((0, 3)), colors=cols if len(pts) else None).export(
-        ws.root / "points.ply")
+    write_points(ws.root / "points.ply", pts, cols)
     return {"views": kept, "radius": float(S[0, 0]), "center": S[:3, 3].tolist()}
 
 
@@ -246,7 +255,7 @@ def import_cameras(ws: Workspace, photos: list[Path], cam_file: Path, cfg: Camer
         K[1] *= nh / h
         Ks.append(K), Rs.append(R), ts.append(t)
     save_cameras(ws.cameras, np.stack(Ks), np.stack(Rs), np.stack(ts), np.asarray(scale, float))
-    trimesh.PointCloud(np.zeros((0, 3))).export(ws.root / "points.ply")
+    write_points(ws.root / "points.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
     return {"views": [p.stem for p in photos], "given": str(cam_file)}
 
 

@@ -38,6 +38,8 @@ class MasksConfig:
     """Resolution of the visual hull used for multi-view consistency."""
     carve_min_views: int = 2
     """A point is background only if at least this many views see it outside their mask."""
+    vote_rounds: int = 2
+    """Rounds of multi-view voting (hull of the current masks → GrabCut inside its silhouette)."""
     grabcut_iters: int = 5
     """GrabCut iterations per pass."""
     seed_radius: int = 2

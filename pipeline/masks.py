@@ -7,9 +7,9 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
    observes far outside it are background (visibility from the COLMAP tracks in ``sfm/``), and everything
    outside the projected unit sphere is background (the object lies inside it by construction);
 2. GrabCut in every image, seeded by those;
-3. multi-view consistency: the visual hull of all masks, carving a point only when ≥ ``carve_min_views``
-   views see it as background, is re-projected into every view, and GrabCut refines that silhouette to the
-   image edges — a mistake in one view is outvoted by the others;
+3. multi-view consistency, ``vote_rounds`` times: the visual hull of all masks, carving a point only when
+   ≥ ``carve_min_views`` views see it as background, is re-projected into every view as an upper bound, and
+   GrabCut refines inside it to the image edges — a mistake in one view is outvoted by the others;
 4. confidence = IoU between a view's first GrabCut mask and the hull's silhouette.
 """
 
@@ -174,21 +174,28 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
         lab = seed_labels(Pn[i], h, w, pts_n, obs.get(n) if obs else None, cfg.seed_radius)
         seeds.append(lab)
         first.append(grabcut(img, lab, cfg.grabcut_iters))
-    first_t = torch.from_numpy(np.stack(first).astype(np.float32))
-    sil = hull_silhouettes(torch.from_numpy(Pn).float(), first_t, cams, cfg.hull_res, cfg.carve_min_views)
-    conf = {}
     k = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
-    for i, (n, img) in enumerate(zip(names, imgs)):
-        # the hull silhouette is an upper bound (outside it: background); inside, the point seeds stay hard
-        # and GrabCut decides the rest (holes the hull cannot carve, e.g. seen only through the object)
-        s = sil[i].astype(np.uint8)
-        lab = np.full(s.shape, cv2.GC_BGD, np.uint8)
-        lab[cv2.dilate(s, k) > 0] = cv2.GC_PR_BGD
-        lab[s > 0] = cv2.GC_PR_FGD
-        hard = (seeds[i] == cv2.GC_FGD) | ((seeds[i] == cv2.GC_BGD) & (cv2.dilate(s, k) > 0))
-        lab[hard] = seeds[i][hard]
-        final = grabcut(img, lab, cfg.grabcut_iters)
-        cv2.imwrite(str(ws.masks / f"{n}.png"), final.astype(np.uint8) * 255)
+    Pt = torch.from_numpy(Pn).float()
+    current = first
+    for _ in range(max(1, cfg.vote_rounds)):
+        # vote: the hull of the current masks (carving needs carve_min_views) is an upper bound in every view
+        sil = hull_silhouettes(Pt, torch.from_numpy(np.stack(current).astype(np.float32)), cams, cfg.hull_res,
+                               cfg.carve_min_views)
+        refined = []
+        for i, img in enumerate(imgs):
+            # outside the silhouette: background; inside, the point seeds stay hard and GrabCut decides the
+            # rest (e.g. a hole the hull could not carve yet)
+            s = sil[i].astype(np.uint8)
+            lab = np.full(s.shape, cv2.GC_BGD, np.uint8)
+            lab[cv2.dilate(s, k) > 0] = cv2.GC_PR_BGD
+            lab[s > 0] = cv2.GC_PR_FGD
+            hard = (seeds[i] == cv2.GC_FGD) | ((seeds[i] == cv2.GC_BGD) & (cv2.dilate(s, k) > 0))
+            lab[hard] = seeds[i][hard]
+            refined.append(grabcut(img, lab, cfg.grabcut_iters))
+        current = refined
+    conf = {}
+    for i, n in enumerate(names):
+        cv2.imwrite(str(ws.masks / f"{n}.png"), current[i].astype(np.uint8) * 255)
         inter = (first[i] & sil[i]).sum()
         union = (first[i] | sil[i]).sum()
         conf[n] = float(inter / union) if union else 0.0

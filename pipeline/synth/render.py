@@ -188,8 +188,14 @@ def camera_rig(scene: Scene, heldout: bool = False):
     lo, hi = rig.elevation
     h = 0.5 if heldout else 0.0
     for i in range(n):
-        az = 2 * math.pi * (i + h) / n
-        el = math.radians(lo + (hi - lo) * (((i + h) * 0.618034) % 1.0))
+        if rig.rings > 0:  # k rings, views spread evenly around each
+            ring = i % rig.rings
+            per = math.ceil(n / rig.rings)
+            az = 2 * math.pi * ((i // rig.rings) + h + 0.5 * ring) / per
+            el = math.radians(lo + (hi - lo) * ring / max(1, rig.rings - 1))
+        else:
+            az = 2 * math.pi * (i + h) / n
+            el = math.radians(lo + (hi - lo) * (((i + h) * 0.618034) % 1.0))
         c = rig.radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
         fwd = -c / np.linalg.norm(c)
         right = np.cross(fwd, [0, 0, 1.0])

@@ -96,6 +96,8 @@ class CameraRig:
     fov_deg: float = 40.0
     elevation: list[float] = field(default_factory=lambda: [-20.0, 50.0])
     """min/max elevation in degrees (views on a spiral)."""
+    rings: int = 0
+    """0: views on a spiral; k > 0: k rings of views at elevations evenly spaced over ``elevation``."""
     heldout: int = 0
     """extra views (between the training views) written to gt/heldout for evaluation."""
     seed: int = 0

@@ -1,0 +1,218 @@
+"""Stages cameras, masks, depth on a synthetic textured object on a textured backdrop (COLMAP must register it),
+plus their bad inputs."""
+
+import hashlib
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from dvr.cameras import load_cameras
+from dvr.metrics import pose_errors, umeyama
+from pipeline.cameras import list_photos, normalization, read_upright
+from pipeline.cli import main
+from pipeline.synth import load_scene_file, write_scene
+from tests.conftest import ROOT
+
+N_VIEWS = 24
+
+
+def _tree_hash(folder):
+    h = hashlib.sha256()
+    for p in sorted(folder.rglob("*")):
+        if p.is_file():
+            h.update(p.name.encode() + p.read_bytes() + str(p.stat().st_mtime_ns).encode())
+    return h.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def photo_ws(tmp_path_factory):
+    """Synthetic photos (no masks, no cameras given) → cameras → masks → depth."""
+    root = tmp_path_factory.mktemp("photos")
+    syn = root / "synthetic"
+    write_scene(load_scene_file(ROOT / "configs" / "scenes" / "torus_backdrop.yaml"), syn)
+    before = _tree_hash(syn / "images")
+    ws = root / "ws"
+    assert main(["cameras", str(ws), "--images", str(syn / "images")]) == 0
+    assert main(["masks", str(ws)]) == 0
+    assert main(["depth", str(ws)]) == 0
+    assert _tree_hash(syn / "images") == before  # inputs untouched
+    return syn, ws
+
+
+def _centres_sfm(c):
+    return c.centers @ c.scale_mat[:3, :3].T + c.scale_mat[:3, 3]
+
+
+def test_all_registered_and_poses_within_1pct(photo_ws):
+    syn, ws = photo_ws
+    est, gt = load_cameras(ws / "cameras.npz"), load_cameras(syn / "cameras.npz")
+    assert len(est) == N_VIEWS  # every view registered
+    err = pose_errors(_centres_sfm(est), est.R, _centres_sfm(gt), gt.R)
+    assert err["center_err_rel_max"] <= 0.01, err
+    assert err["rot_err_deg_max"] < 1.0, err
+    for p in ("sfm/database.db", "sfm/sparse/best/cameras.bin", "points.ply", "images/000000.png"):
+        assert (ws / p).exists(), p
+
+
+def test_object_inside_unit_sphere(photo_ws):
+    import trimesh
+
+    syn, ws = photo_ws
+    est, gt = load_cameras(ws / "cameras.npz"), load_cameras(syn / "cameras.npz")
+    s, R, t = umeyama(_centres_sfm(gt), _centres_sfm(est))  # GT world → SfM frame
+    v = trimesh.load(syn / "gt" / "mesh.ply").vertices
+    v_sfm = s * v @ R.T + t
+    v_n = (v_sfm - est.scale_mat[:3, 3]) / est.scale_mat[0, 0]
+    r = np.linalg.norm(v_n, axis=1)
+    assert r.max() < 1.0 and r.max() > 0.5  # inside, and not lost in a huge sphere
+
+
+def test_auto_masks_iou(photo_ws):
+    syn, ws = photo_ws
+    ious = []
+    for i in range(N_VIEWS):
+        a = cv2.imread(str(ws / "masks" / f"{i:06d}.png"), 0) > 127
+        b = cv2.imread(str(syn / "gt" / "masks" / f"{i:06d}.png"), 0) > 127
+        b = b[: a.shape[0], : a.shape[1]]  # undistortion crops ≤ 1 px at the right/bottom
+        ious.append((a & b).sum() / (a | b).sum())
+    assert np.mean(ious) >= 0.95, np.round(ious, 3)
+    assert (ws / "masks" / "overlays" / "000000.jpg").exists() and (ws / "masks" / "confidence.json").exists()
+
+
+def test_sparse_depth_matches_gt(photo_ws):
+    syn, ws = photo_ws
+    est, gt = load_cameras(ws / "cameras.npz"), load_cameras(syn / "cameras.npz")
+    s, _, _ = umeyama(_centres_sfm(est), _centres_sfm(gt))
+    rel = []
+    for i in range(N_VIEWS):
+        z = np.load(ws / "depth" / f"{i:06d}.npz")
+        g = np.load(syn / "gt" / "depth" / f"{i:06d}.npy")
+        ij = np.floor(z["uv"]).astype(int)
+        gv = g[ij[:, 1], ij[:, 0]]
+        d = z["depth"] * est.scale_mat[0, 0] * s
+        ok = gv > 0
+        rel.append(np.abs(d[ok] - gv[ok]) / gv[ok])
+        assert np.all((z["confidence"] > 0) & (z["confidence"] <= 1))
+    rel = np.concatenate(rel)
+    assert len(rel) > 200 and np.median(rel) <= 0.01
+
+
+def test_stages_are_idempotent(photo_ws, capsys):
+    syn, ws = photo_ws
+    assert main(["cameras", str(ws), "--images", str(syn / "images")]) == 0
+    assert main(["masks", str(ws)]) == 0
+    out = capsys.readouterr().out
+    assert "cameras: up to date" in out and "masks: up to date" in out
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_too_few_images(tmp_path, capsys):
+    (tmp_path / "p").mkdir()
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / "p" / f"{i}.png"), np.zeros((20, 20, 3), np.uint8))
+    rc = main(["cameras", str(tmp_path / "ws"), "--images", str(tmp_path / "p")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "at least 3" in err
+
+
+def test_unreadable_and_non_images_skipped_with_warning(tmp_path):
+    (tmp_path / "a.png").write_bytes(b"not a png")
+    (tmp_path / "notes.txt").write_text("hi")
+    cv2.imwrite(str(tmp_path / "b.png"), np.zeros((8, 8, 3), np.uint8))
+    ok, skipped = list_photos(tmp_path)
+    assert [p.name for p in ok] == ["b.png"]
+    assert any("a.png" in s and "unreadable" in s for s in skipped)
+    assert any("notes.txt" in s for s in skipped)
+
+
+def test_workspace_inside_photos_refused(tmp_path, capsys):
+    rc = main(["cameras", str(tmp_path / "ws"), "--images", str(tmp_path)])
+    assert rc == 2 and "must not be" in capsys.readouterr().err
+
+
+def test_unregistered_images_named(photo_ws, tmp_path, capsys):
+    syn, _ = photo_ws
+    d = tmp_path / "mixed"
+    d.mkdir()
+    for i in (0, 2, 4, 6, 8):  # neighbours on the lower ring
+        shutil.copy(syn / "images" / f"{i:06d}.png", d / f"good{i}.png")
+    rng = np.random.default_rng(0)
+    for i in range(6):
+        cv2.imwrite(str(d / f"noise{i}.png"), cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3), np.uint8),
+                                                              (0, 0), 3))
+    rc = main(["cameras", str(tmp_path / "ws"), "--images", str(d)])
+    err = capsys.readouterr().err
+    assert rc == 2
+    import re
+
+    assert re.search(r"only \d/11 photos registered", err), err
+    assert all(f"noise{i}" in err for i in range(6)) and "likely" in err
+
+
+# ----------------------------------------------------------------------------- EXIF, given cameras, masks
+def _exif_jpeg(path, w, h, orientation):
+    img = Image.new("RGB", (w, h))
+    img.paste((255, 0, 0), (0, 0, w // 2, h))  # left half red in stored pixels
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    img.save(path, exif=exif.tobytes())
+
+
+def test_exif_orientation_applied_for_sfm_and_training(tmp_path):
+    _exif_jpeg(tmp_path / "a.jpg", 40, 20, 6)  # 6: rotate 90° clockwise to display
+    _exif_jpeg(tmp_path / "b.jpg", 40, 20, 1)
+    a, b = read_upright(tmp_path / "a.jpg", 1000), read_upright(tmp_path / "b.jpg", 1000)
+    assert a.shape[:2] == (40, 20) and b.shape[:2] == (20, 40)
+    assert a[2, 10, 2] > 200 and a[-3, 10, 2] < 50  # stored left half (red) is now the top
+
+
+def test_given_cameras_skip_sfm(photo_ws, tmp_path):
+    syn, _ = photo_ws
+    ws = tmp_path / "given"
+    assert main(["cameras", str(ws), "--images", str(syn / "images"), "--cameras", str(syn / "cameras.npz")]) == 0
+    a, b = load_cameras(ws / "cameras.npz"), load_cameras(syn / "cameras.npz")
+    assert np.allclose(a.centers, b.centers) and np.allclose(a.K, b.K)
+    assert not (ws / "sfm").exists()
+    assert main(["depth", str(ws)]) == 0 and not (ws / "depth").exists()
+
+
+def test_normalization_ignores_background_points():
+    rng = np.random.default_rng(0)
+    obj = rng.normal(size=(500, 3)) * 0.2 + [1.0, 2.0, 3.0]
+    bg = rng.normal(size=(300, 3)) * 20
+    ang = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    centers = np.stack([np.cos(ang) * 4, np.sin(ang) * 4, np.zeros(12)], 1) + [1.0, 2.0, 3.0]
+    dirs = [1.0, 2.0, 3.0] - centers
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    Ps, sizes = [], []
+    for c, d in zip(centers, dirs):
+        z = d / np.linalg.norm(d)
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z])
+        Ps.append(K @ np.concatenate([R, (-R @ c)[:, None]], 1))
+        sizes.append((320, 240))
+    S = normalization(np.concatenate([obj, bg]), np.stack(Ps), np.asarray(sizes, float), centers, dirs, 1.1)
+    assert np.allclose(S[:3, 3], [1.0, 2.0, 3.0], atol=0.05)
+    assert 0.5 < S[0, 0] < 1.0
+
+
+def test_user_masks_validated(photo_ws, tmp_path, capsys):
+    syn, ws0 = photo_ws
+    ws = tmp_path / "ws"
+    shutil.copytree(ws0, ws, ignore=shutil.ignore_patterns("masks", ".stages"))
+    (tmp_path / "m").mkdir()
+    assert main(["masks", str(ws), "--masks", str(tmp_path / "m")]) == 2
+    assert "no mask for 000000" in capsys.readouterr().err
+    for i in range(N_VIEWS):
+        shutil.copy(syn / "gt" / "masks" / f"{i:06d}.png", tmp_path / "m" / f"{i:06d}.png")
+    cv2.imwrite(str(tmp_path / "m" / "000003.png"), np.full((240, 320), 128, np.uint8))
+    assert main(["masks", str(ws), "--masks", str(tmp_path / "m")]) == 2
+    assert "neither black nor white" in capsys.readouterr().err
+    shutil.copy(syn / "gt" / "masks" / "000003.png", tmp_path / "m" / "000003.png")
+    assert main(["masks", str(ws), "--masks", str(tmp_path / "m")]) == 0
+    m = cv2.imread(str(ws / "masks" / "000003.png"), 0)
+    assert m.shape == cv2.imread(str(ws / "images" / "000003.png"), 0).shape
