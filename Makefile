@@ -8,7 +8,7 @@ WS      ?= $(OUT)
 FORCE   ?=
 ARGS    ?=
 
-.PHONY: setup test test-fast synth train mesh bench-core reconstruct clean-venv
+.PHONY: setup test test-fast synth cameras masks depth train mesh bench-core reconstruct
 
 setup: .venv/.installed
 .venv/.installed: requirements.txt pyproject.toml
@@ -30,6 +30,15 @@ SCENE ?= configs/scenes/torus.yaml
 synth: setup
 	$(PY) -m pipeline synth $(SCENE) $(OUT)
 
+cameras: setup
+	$(PY) -m pipeline cameras $(WS) --images $(IMAGES) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+
+masks: setup
+	$(PY) -m pipeline masks $(WS) $(if $(MASKS),--masks $(MASKS)) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+
+depth: setup
+	$(PY) -m pipeline depth $(WS) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+
 train: setup
 	$(PY) -m pipeline train $(WS) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
 
@@ -39,10 +48,13 @@ mesh: setup
 bench-core: setup
 	$(PY) bench/core.py
 
-# Stages available today: train, mesh (cameras/masks/depth/texture/report: see the open issues).
+# every stage in order; each is skipped when up to date, and a killed run resumes where it stopped
 reconstruct: setup
 	@if [ -z "$(IMAGES)" ] && [ ! -f "$(OUT)/cameras.npz" ]; then \
-	  echo "usage: make reconstruct OUT=workspace (with images/, masks/, cameras.npz) [CONFIG=file]"; exit 2; fi
+	  echo "usage: make reconstruct IMAGES=photos [MASKS=dir] [OUT=workspace] [CONFIG=file]"; exit 2; fi
+	$(if $(IMAGES),$(PY) -m pipeline cameras $(OUT) --images $(IMAGES) --config $(CONFIG))
+	$(if $(or $(IMAGES),$(MASKS)),$(PY) -m pipeline masks $(OUT) $(if $(MASKS),--masks $(MASKS)) --config $(CONFIG))
+	$(if $(IMAGES),$(PY) -m pipeline depth $(OUT) --config $(CONFIG))
 	$(PY) -m pipeline train $(OUT) --config $(CONFIG)
 	$(PY) -m pipeline mesh $(OUT) --config $(CONFIG)
 	@echo "done: $(OUT)/mesh/clean.ply"

@@ -1,4 +1,5 @@
-"""Configs of the stages ``cameras`` and ``masks`` (kept apart so config.py does not import pycolmap)."""
+"""Configs of the stages cameras, masks, depth and texture (apart from their modules, so that config.py and
+the CLI do not import pycolmap or xatlas)."""
 
 from __future__ import annotations
 
@@ -58,3 +59,25 @@ class DepthConfig:
     """Keep points observed in at least this many images."""
     max_reprojection_error: float = 1.5
     """Keep points whose mean reprojection error (px, SfM resolution) is at most this."""
+
+
+@dataclass
+class TextureConfig:
+    """UV texturing from the photos (stage ``texture``)."""
+
+    size: int = 2048
+    """Texture width and height in texels."""
+    padding: int = 4
+    """Texels between charts in the atlas."""
+    gutter: int = 8
+    """Texels of colour dilated around every chart."""
+    angle_power: float = 4.0
+    """Sharpness of the view weighting by the cosine between normal and viewing direction."""
+    min_cos: float = 0.1
+    """Views seeing a surface more grazing than this cosine are ignored."""
+    depth_tolerance: float = 0.01
+    """Visibility test: |texel depth − rendered depth| below this (normalized units) counts as visible."""
+    frame: Literal["sfm", "normalized"] = "sfm"
+    """Frame of the textured outputs: 'sfm' (that of cameras.npz) or 'normalized'."""
+    device: str = "auto"
+    """Device of the texture field used for unseen texels."""

@@ -17,7 +17,7 @@ import tyro
 
 from dvr.trainer import TrainConfig
 
-from .cameras_config import CamerasConfig, DepthConfig
+from .cameras_config import CamerasConfig, DepthConfig, TextureConfig
 from .config import Config, MasksConfig, MeshConfig, load_config
 from .workspace import StageError, Workspace
 
@@ -99,6 +99,21 @@ class MeshArgs:
 
 
 @dataclass
+class TextureArgs:
+    """UV-texture the clean mesh from the photos (reads mesh/clean.ply, model/, images/, cameras.npz; writes
+    mesh/textured.obj/.mtl/.png and mesh/textured.glb)."""
+
+    workspace: tyro.conf.Positional[Path]
+    """Workspace folder."""
+    config: Optional[Path] = None
+    """YAML preset; options below override it."""
+    force: bool = False
+    """Redo the stage even when its outputs are up to date."""
+    texture: TextureConfig = field(default_factory=TextureConfig)
+    """Texture options."""
+
+
+@dataclass
 class SynthArgs:
     """Render a synthetic scene (YAML) into a workspace with ground truth in gt/."""
 
@@ -163,7 +178,14 @@ def _mesh(argv):
     mesh.run(Workspace(a.workspace), a.mesh, a.force)
 
 
-COMMANDS = {"synth": _synth, "cameras": _cameras, "masks": _masks, "depth": _depth, "train": _train, "mesh": _mesh}
+def _texture(argv):
+    from . import texture
+
+    a = _parse(TextureArgs, "texture", argv, "python -m pipeline texture")
+    texture.run(Workspace(a.workspace), a.texture, a.force)
+
+
+COMMANDS = {"synth": _synth, "cameras": _cameras, "masks": _masks, "depth": _depth, "train": _train, "mesh": _mesh, "texture": _texture}
 
 
 def main(argv: list[str] | None = None) -> int:

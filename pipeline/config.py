@@ -20,7 +20,7 @@ import yaml
 
 from dvr.trainer import TrainConfig
 
-from .cameras_config import CamerasConfig, DepthConfig, MasksConfig
+from .cameras_config import CamerasConfig, DepthConfig, MasksConfig, TextureConfig
 
 
 @dataclass
@@ -37,7 +37,7 @@ class MeshConfig:
     """Drop connected components with fewer faces than this fraction of the largest."""
     smooth_iterations: int = 0
     """Taubin smoothing iterations of the clean mesh (0: off)."""
-    max_faces: int = 300000
+    max_faces: int = 40000
     """Decimate the clean mesh to at most this many faces (quadric edge collapse)."""
     frame: Literal["sfm", "normalized"] = "sfm"
     """Frame of the written meshes: 'sfm' (the frame of cameras.npz) or 'normalized' (unit sphere)."""
@@ -59,6 +59,8 @@ class Config:
     """Stage ``train``."""
     mesh: MeshConfig = field(default_factory=MeshConfig)
     """Stage ``mesh``."""
+    texture: TextureConfig = field(default_factory=TextureConfig)
+    """Stage ``texture``."""
 
 
 def _resolve(tp):

@@ -1,0 +1,24 @@
+"""Reference cameras of ../shared/data/dtu_scan24 for its 384x384 images (see its SOURCE.txt):
+K from world_mat_i, cx -= 200, first two rows × 0.32; the scale_mat maps the unit sphere to DTU mm."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dvr.cameras import decompose_projection
+
+
+def dtu_reference(folder: Path):
+    """K (N,3,3), R (N,3,3), centres (N,3) in DTU mm, and scale_mat."""
+    z = np.load(Path(folder) / "cameras.npz")
+    n = len([k for k in z.files if k.startswith("world_mat_") and not k.startswith("world_mat_inv")])
+    Ks, Rs, Cs = [], [], []
+    for i in range(n):
+        K, R, t = decompose_projection(z[f"world_mat_{i}"][:3, :4])
+        K = K.copy()
+        K[0, 2] -= 200.0
+        K[:2] *= 0.32
+        Ks.append(K), Rs.append(R), Cs.append(-R.T @ t)
+    return np.stack(Ks), np.stack(Rs), np.stack(Cs), z["scale_mat_0"]
