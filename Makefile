@@ -8,7 +8,7 @@ WS      ?= $(OUT)
 FORCE   ?=
 ARGS    ?=
 
-.PHONY: setup test test-fast synth cameras masks depth train mesh bench-core reconstruct
+.PHONY: setup setup-web test test-fast synth cameras masks depth train mesh bench-core reconstruct
 
 setup: .venv/.installed
 .venv/.installed: requirements.txt pyproject.toml
@@ -17,6 +17,12 @@ setup: .venv/.installed
 	.venv/bin/pip install -q torch==2.13.0
 	.venv/bin/pip install -q -r requirements.txt
 	.venv/bin/pip install -q --no-deps --no-build-isolation -e .
+	touch $@
+
+# test-time web tools (glTF validator) from npm; the tests that need them skip without node
+setup-web: node_modules/.installed
+node_modules/.installed: package.json
+	npm install --no-audit --no-fund
 	touch $@
 
 test: setup

@@ -157,10 +157,10 @@ def find_surface(
             inside = torch.zeros_like(vals[:, 0], dtype=torch.bool)
             vv = torch.cat([prev[active, None], vals], dim=1)
             dd = torch.cat([depths[active, s0 - 1 : s0], d_blk], dim=1)
-        cross = (vv[:, :-1] < 0) & (vv[:, 1:] >= 0)
+        cross = (vv[:, :-1] < 0) & (vv[:, 1:] >= 0)  # may have 0 columns (first block of width 1)
         found = cross.any(dim=1) & ~inside
-        first = cross.to(torch.int8).argmax(dim=1)
         if found.any():
+            first = cross.to(torch.int8).argmax(dim=1)
             f_idx = active[found]
             k = first[found]
             lo_d[f_idx] = dd[found].gather(1, k[:, None])[:, 0]

@@ -195,10 +195,10 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
     tex = np.zeros((cfg.size, cfg.size, 3), np.float32)
     tex[r, c] = col
     valid = fid >= 0
-    tex, _ = dilate_gutter(tex, valid, cfg.gutter)
+    tex, filled = dilate_gutter(tex, valid, cfg.gutter)
     covered_faces = np.unique(fid[valid])
     stats = {"texels": int(valid.sum()), "unseen_frac": float(unseen.mean()) if len(unseen) else 0.0,
-             "faces": int(len(nf)), "faces_with_texels": int(len(covered_faces))}
+             "faces": int(len(nf)), "faces_with_texels": int(len(covered_faces)), "filled": filled}
     return nv, nf, uvs, tex, stats
 
 
@@ -279,6 +279,7 @@ def run(ws: Workspace, cfg: TextureConfig, force: bool = False) -> bool:
     nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field)
     out_v = nv @ S[:3, :3].T + S[:3, 3] if cfg.frame == "sfm" else nv
     export_textured(ws.mesh, out_v, nf, uvs, tex)
+    stats.pop("filled")
     ws.mark_done("texture", h, time.perf_counter() - t0, stats)
     print(f"texture: {cfg.size}² atlas, {100 * (1 - stats['unseen_frac']):.1f} % of texels from photos → "
           f"{ws.mesh / 'textured.glb'}")

@@ -60,6 +60,14 @@ def test_chunking_gives_same_result_and_bounded_batch():
     assert torch.allclose(big.depth, ref.depth) and torch.equal(big.status, ref.status)
 
 
+def test_more_rays_than_max_points():
+    """Blocks of a single sample (rays > max_points) give the same surfaces."""
+    o, w = rays(64)
+    small = find_surface(sphere(), o, w, n_steps=32, max_points=16)
+    ref = find_surface(sphere(), o, w, n_steps=32)
+    assert torch.allclose(small.depth, ref.depth) and torch.equal(small.status, ref.status)
+
+
 def test_secant_converges_in_bracket():
     f = sphere()
     o, w = rays(3)
