@@ -8,7 +8,7 @@ WS      ?= $(OUT)
 FORCE   ?=
 ARGS    ?=
 
-.PHONY: setup setup-web test test-fast synth cameras masks depth train mesh bench-core reconstruct
+.PHONY: setup setup-web test test-fast synth cameras masks depth train mesh texture report bench-core reconstruct
 
 setup: .venv/.installed
 .venv/.installed: requirements.txt pyproject.toml
@@ -51,6 +51,12 @@ train: setup
 mesh: setup
 	$(PY) -m pipeline mesh $(WS) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
 
+texture: setup
+	$(PY) -m pipeline texture $(WS) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+
+report: setup
+	$(PY) -m pipeline report $(WS)
+
 bench-core: setup
 	$(PY) bench/core.py
 
@@ -63,4 +69,6 @@ reconstruct: setup
 	$(if $(IMAGES),$(PY) -m pipeline depth $(OUT) --config $(CONFIG))
 	$(PY) -m pipeline train $(OUT) --config $(CONFIG)
 	$(PY) -m pipeline mesh $(OUT) --config $(CONFIG)
-	@echo "done: $(OUT)/mesh/clean.ply"
+	$(PY) -m pipeline texture $(OUT) --config $(CONFIG)
+	$(PY) -m pipeline report $(OUT)
+	@echo "done: $(OUT)/mesh/textured.glb  report: $(OUT)/report.html"

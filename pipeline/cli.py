@@ -114,6 +114,18 @@ class TextureArgs:
 
 
 @dataclass
+class ReportArgs:
+    """Write report.html: stage times, SfM summary, mask overlays, curves, renders, interactive mesh viewer."""
+
+    workspace: tyro.conf.Positional[Path]
+    """Workspace folder."""
+    config: Optional[Path] = None
+    """Accepted for symmetry with the other stages (the report has no options)."""
+    force: bool = False
+    """Accepted for symmetry; the report is always rewritten."""
+
+
+@dataclass
 class SynthArgs:
     """Render a synthetic scene (YAML) into a workspace with ground truth in gt/."""
 
@@ -185,7 +197,14 @@ def _texture(argv):
     texture.run(Workspace(a.workspace), a.texture, a.force)
 
 
-COMMANDS = {"synth": _synth, "cameras": _cameras, "masks": _masks, "depth": _depth, "train": _train, "mesh": _mesh, "texture": _texture}
+def _report(argv):
+    from . import report
+
+    a = _parse(ReportArgs, None, argv, "python -m pipeline report")
+    report.run(Workspace(a.workspace), a.force)
+
+
+COMMANDS = {"synth": _synth, "cameras": _cameras, "masks": _masks, "depth": _depth, "train": _train, "mesh": _mesh, "texture": _texture, "report": _report}
 
 
 def main(argv: list[str] | None = None) -> int:

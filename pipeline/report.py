@@ -1,0 +1,169 @@
+"""Stage ``report``: a self-contained ``report.html`` (+ PNG plots in ``report/``).
+
+Per-stage seconds, the SfM summary, mask overlays, loss and PSNR curves, renders of the textured mesh next
+to the photos (and next to held-out photos when the workspace has ``gt/heldout``), and the mesh in an
+interactive viewer: Google's model-viewer, installed from npm (``make setup-web``) and inlined — no CDN.
+Without it the report says so and shows the static renders only.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .workspace import Workspace
+
+VIEWER_JS = Path(__file__).resolve().parents[1] / "node_modules" / "@google" / "model-viewer" / "dist" / \
+    "model-viewer.min.js"
+
+
+def _png_b64(img_rgb: np.ndarray) -> str:
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(img_rgb, cv2.COLOR_RGB2BGR))
+    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode()
+
+
+def _jpg_b64(path: Path, max_side: int = 320) -> str:
+    img = cv2.imread(str(path))
+    s = max_side / max(img.shape[:2])
+    if s < 1:
+        img = cv2.resize(img, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 85])
+    return "data:image/jpeg;base64," + base64.b64encode(buf.tobytes()).decode()
+
+
+def curves(log: Path, out: Path) -> Path | None:
+    """Loss and PSNR against step → PNG."""
+    if not log.exists():
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rec = [json.loads(x) for x in log.read_text().splitlines() if x.strip()]
+    if not rec:
+        return None
+    step = [r["step"] for r in rec]
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    for k in ("loss", "rgb", "freespace", "occupancy", "carve", "depth"):
+        v = [r.get(k) for r in rec]
+        if any(x is not None and x > 0 for x in v):
+            ax[0].plot(step, [np.nan if x is None else x for x in v], label=k)
+    ax[0].set_yscale("log")
+    ax[0].set_xlabel("step")
+    ax[0].legend(fontsize=7)
+    ax[0].set_title("losses")
+    ax[1].plot(step, [r.get("psnr") or np.nan for r in rec])
+    ax[1].set_xlabel("step")
+    ax[1].set_title("training PSNR (dB)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+def renders(ws: Workspace, n: int = 4) -> list[tuple[str, str, float]]:
+    """(photo, render, masked PSNR) for a few views: the textured mesh ray-cast at the photos' cameras."""
+    import trimesh
+
+    from dvr.cameras import load_cameras
+    from dvr.data import list_images
+
+    from .texture import render_textured
+
+    glb = ws.mesh / "textured.glb"
+    if not glb.exists():
+        return []
+    sets = [(ws.images, ws.masks, ws.cameras, "view")]
+    held = ws.root / "gt" / "heldout"
+    if (held / "cameras.npz").exists() and not (ws.root / "sfm").exists():  # GT frame == workspace frame
+        sets.insert(0, (held / "images", held / "masks", held / "cameras.npz", "held-out"))
+    tm = trimesh.load(glb, force="mesh")
+    tex = np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
+    out = []
+    for img_dir, mask_dir, cam_file, tag in sets:
+        paths = list_images(img_dir)
+        cams = load_cameras(cam_file, n_views=len(paths))
+        S = cams.scale_mat
+        for i in np.linspace(0, len(paths) - 1, min(n, len(paths))).round().astype(int):
+            photo = cv2.cvtColor(cv2.imread(str(paths[i])), cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+            h, w = photo.shape[:2]
+            img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, cams.K[i], cams.R[i],
+                                       cams.centers[i] @ S[:3, :3].T + S[:3, 3], w, h)
+            mp = mask_dir / f"{paths[i].stem}.png"
+            m = cv2.imread(str(mp), 0) > 127 if mp.exists() else hit
+            m = m | hit
+            p = float(-10 * np.log10(max(((img - photo)[m] ** 2).mean(), 1e-10))) if m.any() else float("nan")
+            out.append((f"{tag} {paths[i].stem}", _png_b64((np.concatenate([photo, img], 1) * 255).astype(np.uint8)), p))
+        if tag == "held-out":
+            break
+    return out
+
+
+def build(ws: Workspace) -> str:
+    secs = ws.seconds()
+    stamps = {}
+    for p in sorted(ws.stages.glob("*.json")) if ws.stages.exists() else []:
+        stamps[p.stem] = json.loads(p.read_text())
+    rep = ws.root / "report"
+    rep.mkdir(exist_ok=True)
+    parts = [f"<h1>Reconstruction report: {html.escape(ws.root.name)}</h1>",
+             f"<p>generated {time.strftime('%Y-%m-%d %H:%M')}</p>", "<h2>Stages</h2><table><tr><th>stage</th>"
+             "<th>seconds</th><th>details</th></tr>"]
+    for st in ("cameras", "masks", "depth", "train", "mesh", "texture"):
+        if st in stamps:
+            det = {k: v for k, v in stamps[st].items() if k not in ("config", "seconds", "finished")}
+            parts.append(f"<tr><td>{st}</td><td>{secs.get(st, 0):.1f}</td><td><code>"
+                         f"{html.escape(json.dumps(det))}</code></td></tr>")
+    parts.append(f"<tr><td><b>total</b></td><td><b>{sum(secs.values()):.1f}</b></td><td></td></tr></table>")
+    glb = ws.mesh / "textured.glb"
+    if glb.exists():
+        parts.append("<h2>Mesh</h2>")
+        if VIEWER_JS.exists():
+            src = "data:model/gltf-binary;base64," + base64.b64encode(glb.read_bytes()).decode()
+            js = VIEWER_JS.read_text().replace("</script", "<\\/script")
+            parts.append(f'<script type="module">{js}</script>'
+                         f'<model-viewer id="viewer" src="{src}" camera-controls auto-rotate shadow-intensity="0.5" '
+                         'style="width:720px;height:540px;background:#eee"></model-viewer>')
+        else:
+            parts.append("<p>(interactive viewer: run <code>make setup-web</code> to install model-viewer, then "
+                         "rerun the report stage)</p>")
+    ren = renders(ws)
+    if ren:
+        parts.append("<h2>Photos (left) and the textured mesh (right)</h2>")
+        for tag, uri, p in ren:
+            parts.append(f'<figure><img src="{uri}"><figcaption>{html.escape(tag)}: PSNR {p:.2f} dB (object '
+                         "pixels)</figcaption></figure>")
+    c = curves(ws.model / "log.jsonl", rep / "curves.png")
+    if c:
+        parts.append(f'<h2>Training</h2><img src="{_png_b64(cv2.cvtColor(cv2.imread(str(c)), cv2.COLOR_BGR2RGB))}">')
+    ov = sorted((ws.masks / "overlays").glob("*.jpg")) if (ws.masks / "overlays").exists() else []
+    if ov:
+        conf = json.loads((ws.masks / "confidence.json").read_text()) if (ws.masks / "confidence.json").exists() else {}
+        parts.append("<h2>Masks</h2><div>")
+        for p in ov[:: max(1, len(ov) // 12)]:
+            parts.append(f'<figure style="display:inline-block"><img src="{_jpg_b64(p)}"><figcaption>{p.stem} '
+                         f"confidence {conf.get(p.stem, float('nan')):.2f}</figcaption></figure>")
+        parts.append("</div>")
+    style = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}td,th{border:1px solid #ccc;"
+             "padding:4px 8px}code{font-size:80%}")
+    return f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(ws.root.name)}</title>" \
+           f"<style>{style}</style></head><body>{''.join(parts)}</body></html>"
+
+
+def run(ws: Workspace, force: bool = False) -> bool:
+    ws.require(ws.root, hint="run the earlier stages first")
+    t0 = time.perf_counter()
+    doc = build(ws)
+    out = ws.root / "report.html"
+    out.write_text(doc)
+    ws.mark_done("report", "-", time.perf_counter() - t0)
+    print(f"report: {out} ({len(doc) / 1e6:.1f} MB)")
+    return True
+
