@@ -77,6 +77,8 @@ class TextureConfig:
     """Views seeing a surface more grazing than this cosine are ignored."""
     depth_tolerance: float = 0.01
     """Visibility test: |texel depth − rendered depth| below this (normalized units) counts as visible."""
+    edge_px: int = 1
+    """Photo pixels within this distance of a depth discontinuity or silhouette are not used."""
     frame: Literal["sfm", "normalized"] = "sfm"
     """Frame of the textured outputs: 'sfm' (that of cameras.npz) or 'normalized'."""
     device: str = "auto"

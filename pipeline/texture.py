@@ -107,6 +107,16 @@ def depth_maps(mesh: trimesh.Trimesh, cams, sizes: list[tuple[int, int]]) -> lis
     return out
 
 
+def depth_edges(depth: np.ndarray, tol: float, px: int) -> np.ndarray:
+    """Pixels within ``px`` of a depth discontinuity (> 10 × tol) or of the silhouette."""
+    d = np.where(np.isfinite(depth), depth, 1e6).astype(np.float32)
+    k = np.ones((3, 3), np.uint8)
+    jump = (cv2.dilate(d, k) - cv2.erode(d, k)) > 10 * tol
+    if px > 0:
+        jump = cv2.dilate(jump.astype(np.uint8), np.ones((2 * px + 1,) * 2, np.uint8)) > 0
+    return jump
+
+
 def sample_bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear lookup at continuous (x, y) where integer coordinates are pixel centres (edges clamped)."""
     h, w = img.shape[:2]
@@ -123,6 +133,7 @@ def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams, depth
     """Colours (M, 3) in [0, 1] and total weights (M,) of texel points seen by the photos."""
     acc = np.zeros((len(pts), 3))
     wsum = np.zeros(len(pts))
+    edges = [depth_edges(d, cfg.depth_tolerance, cfg.edge_px) for d in depths]
     for i, img in enumerate(images):
         h, w = img.shape[:2]
         c = cams.centers[i]
@@ -141,8 +152,10 @@ def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams, depth
         ij = np.floor(uv[idx]).astype(int)
         ij[:, 0] = ij[:, 0].clip(0, w - 1)
         ij[:, 1] = ij[:, 1].clip(0, h - 1)
-        # visibility: the rendered depth at that pixel is this texel's depth (nothing in front)
+        # visibility: the rendered depth at that pixel is this texel's depth (nothing in front), and the pixel
+        # is not at a depth discontinuity (silhouettes mix in the background's colour)
         vis = np.abs(depths[i][ij[:, 1], ij[:, 0]] - dist[idx]) < cfg.depth_tolerance
+        vis &= ~edges[i][ij[:, 1], ij[:, 0]]
         idx, ij = idx[vis], ij[vis]
         if not len(idx):
             continue
