@@ -78,7 +78,9 @@ class TextureConfig:
     depth_tolerance: float = 0.01
     """Visibility test: |texel depth − rendered depth| below this (normalized units) counts as visible."""
     edge_px: int = 1
-    """Photo pixels within this distance of a depth discontinuity or silhouette are not used."""
+    """Photo pixels within this distance of a depth discontinuity or silhouette count as edge pixels."""
+    edge_weight: float = 0.02
+    """Weight factor of samples that use an edge pixel (they blend foreground and background in real photos)."""
     frame: Literal["sfm", "normalized"] = "sfm"
     """Frame of the textured outputs: 'sfm' (that of cameras.npz) or 'normalized'."""
     device: str = "auto"

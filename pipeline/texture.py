@@ -128,9 +128,44 @@ def sample_bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray
             + (img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
 
 
+def sample_visible(img: np.ndarray, depth: np.ndarray, edges: np.ndarray, x: np.ndarray, y: np.ndarray,
+                   dist: np.ndarray, tol: np.ndarray):
+    """Depth-aware bilinear lookup at continuous (x, y) (integer = pixel centre).
+
+    Of the four pixels around (x, y), only those whose rendered depth agrees with the texel's depth ``dist``
+    (within ``tol``) contribute: a pixel of an occluder, or of the background beside a silhouette, never
+    mixes in. Returns colours (M, C), the support (sum of the bilinear weights used; 0 = not visible) and
+    whether an edge pixel was used.
+    """
+    h, w = depth.shape
+    x0 = np.floor(x).astype(int).clip(0, w - 2)
+    y0 = np.floor(y).astype(int).clip(0, h - 2)
+    fx, fy = (x - x0).clip(0, 1), (y - y0).clip(0, 1)
+    col = np.zeros((len(x), img.shape[2]))
+    sup = np.zeros(len(x))
+    edge = np.zeros(len(x), bool)
+    for dy, dx, wt in ((0, 0, (1 - fx) * (1 - fy)), (0, 1, fx * (1 - fy)), (1, 0, (1 - fx) * fy), (1, 1, fx * fy)):
+        yy, xx = y0 + dy, x0 + dx
+        ok = np.abs(depth[yy, xx] - dist) < tol  # inf (no surface there) never agrees
+        wk = np.where(ok, wt, 0.0)
+        col += wk[:, None] * img[yy, xx]
+        sup += wk
+        edge |= ok & (wt > 0) & edges[yy, xx]
+    col /= np.maximum(sup, 1e-12)[:, None]
+    return col, sup, edge
+
+
 def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams, depths: list[np.ndarray],
          cfg: TextureConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Colours (M, 3) in [0, 1] and total weights (M,) of texel points seen by the photos."""
+    """Colours (M, 3) in [0, 1] and total weights (M,) of texel points seen by the photos.
+
+    Per view: texels in front of the camera, inside the image and facing it (cos > ``min_cos``) are sampled
+    with :func:`sample_visible` (the depth test against the ray-cast depth map, with a tolerance that grows
+    with the pixel footprint on slanted surfaces). Weight = cos^p / distance² × a feather towards the image
+    border × the support; samples that touch a depth discontinuity or silhouette (where real photos blend
+    foreground and background) are down-weighted by ``edge_weight``, so they only count where nothing better
+    sees the texel.
+    """
     acc = np.zeros((len(pts), 3))
     wsum = np.zeros(len(pts))
     edges = [depth_edges(d, cfg.depth_tolerance, cfg.edge_px) for d in depths]
@@ -149,20 +184,17 @@ def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams, depth
         if not ok.any():
             continue
         idx = np.nonzero(ok)[0]
-        ij = np.floor(uv[idx]).astype(int)
-        ij[:, 0] = ij[:, 0].clip(0, w - 1)
-        ij[:, 1] = ij[:, 1].clip(0, h - 1)
-        # visibility: the rendered depth at that pixel is this texel's depth (nothing in front), and the pixel
-        # is not at a depth discontinuity (silhouettes mix in the background's colour)
-        vis = np.abs(depths[i][ij[:, 1], ij[:, 0]] - dist[idx]) < cfg.depth_tolerance
-        vis &= ~edges[i][ij[:, 1], ij[:, 0]]
-        idx, ij = idx[vis], ij[vis]
+        # depth change across one pixel on a surface tilted by θ: (dist / f) · tan θ
+        cs = cos[idx]
+        tol = cfg.depth_tolerance + 1.5 * dist[idx] / cams.K[i][0, 0] * np.sqrt(1 - cs ** 2) / cs
+        col, sup, edge = sample_visible(img, depths[i], edges[i], uv[idx, 0] - 0.5, uv[idx, 1] - 0.5, dist[idx], tol)
+        keep = sup > 0.05
+        idx, col, sup, edge, cs = idx[keep], col[keep], sup[keep], edge[keep], cs[keep]
         if not len(idx):
             continue
-        col = sample_bilinear(img, uv[idx, 0] - 0.5, uv[idx, 1] - 0.5)
         border = np.minimum.reduce([uv[idx, 0], w - uv[idx, 0], uv[idx, 1], h - uv[idx, 1]])
         feather = np.clip(border / (0.05 * max(w, h)), 0.05, 1.0)
-        wt = cos[idx] ** cfg.angle_power / dist[idx] ** 2 * feather
+        wt = cs ** cfg.angle_power / dist[idx] ** 2 * feather * sup * np.where(edge, cfg.edge_weight, 1.0)
         acc[idx] += wt[:, None] * col
         wsum[idx] += wt
     seen = wsum > 0
@@ -187,6 +219,22 @@ def dilate_gutter(tex: np.ndarray, valid: np.ndarray, n: int) -> tuple[np.ndarra
     return tex, valid
 
 
+def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field=None) -> np.ndarray:
+    """Colours of the texels no photo sees: the trained texture field's when there is one, else the colour of
+    the nearest seen texel in 3-D (never black)."""
+    if field is not None:
+        dev = next(field.parameters()).device
+        with torch.no_grad():
+            q = torch.from_numpy(pts[unseen]).float().to(dev)
+            return torch.cat([field.texture(q[s : s + 65536]) for s in range(0, len(q), 65536)]).cpu().numpy()
+    if unseen.all():
+        return np.full((int(unseen.sum()), 3), 0.5)
+    from scipy.spatial import cKDTree
+
+    _, nn = cKDTree(pts[~unseen]).query(pts[unseen], k=1)
+    return col[~unseen][nn]
+
+
 def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams, cfg: TextureConfig,
                  field=None):
     """Normalized-frame mesh → (new verts, new faces, uvs, texture (size, size, 3) float, stats)."""
@@ -200,11 +248,8 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
     deps = depth_maps(base, cams, sizes)
     col, wsum = bake(pts, nrm, images, cams, deps, cfg)
     unseen = wsum <= 0
-    if unseen.any() and field is not None:
-        dev = next(field.parameters()).device
-        with torch.no_grad():
-            q = torch.from_numpy(pts[unseen]).float().to(dev)
-            col[unseen] = torch.cat([field.texture(q[s : s + 65536]) for s in range(0, len(q), 65536)]).cpu().numpy()
+    if unseen.any():
+        col[unseen] = fill_unseen(pts, col, unseen, field)
     tex = np.zeros((cfg.size, cfg.size, 3), np.float32)
     tex[r, c] = col
     valid = fid >= 0

@@ -169,15 +169,22 @@ def albedo_of(scene: Scene, pts: np.ndarray, uv: np.ndarray | None, tex: np.ndar
         h, w = tex.shape[:2]
         x = (uv[:, 0] % 1.0) * w - 0.5
         y = (1 - uv[:, 1] % 1.0) * h - 0.5
-        m = cv2.remap(tex, x.astype(np.float32)[None], y.astype(np.float32)[None], cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_WRAP)
-        return m[0].astype(float)
+        out = np.zeros((len(x), tex.shape[2] if tex.ndim == 3 else 1))
+        for s in range(0, len(x), 32000):  # cv2.remap takes at most 32767 columns
+            m = cv2.remap(tex, x[s : s + 32000].astype(np.float32)[None], y[s : s + 32000].astype(np.float32)[None],
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+            out[s : s + 32000] = m[0].reshape(-1, out.shape[1])
+        return out
     raise ValueError(f"unknown albedo '{a.kind}' (constant, checker, noise, texture)")
 
 
 # ----------------------------------------------------------------------------- cameras
 def camera_rig(scene: Scene, heldout: bool = False):
-    """K (N,3,3), R (N,3,3), centres (N,3) in the canonical frame; spiral of views looking at the origin."""
+    """K (N,3,3), R (N,3,3), centres (N,3) in the canonical frame; views looking at the origin.
+
+    Training views lie on a spiral (``rings: 0``) or on ``rings`` rings. Held-out views use the same layout at
+    fractional positions halfway between training views, so no held-out view repeats a training camera.
+    """
     rig = scene.cameras
     n = rig.heldout if heldout else rig.n_views
     if n <= 0:
@@ -186,16 +193,22 @@ def camera_rig(scene: Scene, heldout: bool = False):
     K = np.array([[f, 0, rig.width / 2], [0, f, rig.height / 2], [0, 0, 1.0]])
     Ks, Rs, Cs = [], [], []
     lo, hi = rig.elevation
-    h = 0.5 if heldout else 0.0
+    nt = max(1, rig.n_views)
     for i in range(n):
         if rig.rings > 0:  # k rings, views spread evenly around each
             ring = i % rig.rings
-            per = math.ceil(n / rig.rings)
-            az = 2 * math.pi * ((i // rig.rings) + h + 0.5 * ring) / per
+            per = math.ceil(nt / rig.rings)
+            slot = float(i // rig.rings)
+            if heldout:  # spread over the ring, then halfway between two training slots
+                slot = math.floor((slot + 0.5) * per / math.ceil(n / rig.rings)) + 0.5
+            az = 2 * math.pi * (slot + 0.5 * ring) / per
             el = math.radians(lo + (hi - lo) * ring / max(1, rig.rings - 1))
         else:
-            az = 2 * math.pi * (i + h) / n
-            el = math.radians(lo + (hi - lo) * (((i + h) * 0.618034) % 1.0))
+            x = float(i)
+            if heldout:  # fractional spiral index halfway between two training views
+                x = math.floor((i + 0.5) * nt / n) + 0.5
+            az = 2 * math.pi * x / nt
+            el = math.radians(lo + (hi - lo) * ((x * 0.618034) % 1.0))
         c = rig.radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
         fwd = -c / np.linalg.norm(c)
         right = np.cross(fwd, [0, 0, 1.0])
