@@ -8,7 +8,7 @@ WS      ?= $(OUT)
 FORCE   ?=
 ARGS    ?=
 
-.PHONY: setup setup-web test test-fast synth cameras masks depth train mesh texture report bench-core reconstruct
+.PHONY: setup setup-web test test-fast synth cameras masks depth train mesh texture report bench-core bench bench-quick reconstruct
 
 setup: .venv/.installed
 .venv/.installed: requirements.txt pyproject.toml
@@ -59,6 +59,12 @@ report: setup
 
 bench-core: setup
 	$(PY) bench/core.py
+
+bench: setup
+	$(PY) bench/run.py --readme
+
+bench-quick: setup
+	$(PY) bench/run.py --quick
 
 # every stage in order; each is skipped when up to date, and a killed run resumes where it stopped
 reconstruct: setup

@@ -103,7 +103,7 @@ def time_to_chamfer(ws: Path, dev: torch.device, cfg: TrainConfig, target: float
         while True:
             v, fc, _ = extract_mesh(tr.model, 128, refine_steps=1)
             m = trimesh.Trimesh(v, fc, process=False)
-            m.apply_transform(data.cams.scale_mat)
+            m.apply_transform(tr.data.cams.scale_mat)
             r = chamfer_fscore(m, gt, n=50000) if len(fc) else {"chamfer_rel": float("inf"), "fscore": 0.0}
             curve.append({"step": tr.step, "train_s": round(setup + tr.elapsed, 2), "chamfer_rel": r["chamfer_rel"],
                           "fscore": r["fscore"]})

@@ -43,6 +43,17 @@ class Cameras:
     def subset(self, idx) -> "Cameras":
         return Cameras(self.K[idx], self.R[idx], self.t[idx], self.scale_mat)
 
+    def reframe(self, center: np.ndarray, radius: float) -> "Cameras":
+        """The same cameras in a frame whose unit sphere is the sphere (``center``, ``radius``) of this frame:
+        x_this = center + radius · x_new. ``scale_mat`` becomes new → SfM; depths scale by 1/radius."""
+        if not (radius > 0 and np.isfinite(radius)):
+            raise ValueError(f"reframe: radius must be positive and finite, got {radius}")
+        T = np.eye(4)
+        T[:3, :3] *= radius
+        T[:3, 3] = center
+        t = (np.einsum("nij,j->ni", self.R, np.asarray(center, float)) + self.t) / radius
+        return Cameras(self.K.copy(), self.R.copy(), t, self.scale_mat @ T)
+
 
 def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split a 3×4 projection P = s·K[R|t] into K (K[2,2]=1, positive focal lengths), R (det +1) and t."""

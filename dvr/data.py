@@ -57,6 +57,29 @@ class SceneData:
     depth_views: torch.Tensor | None = None  # (K,) view of each sparse depth
     depth_uv: torch.Tensor | None = None  # (K, 2)
     depth_val: torch.Tensor | None = None  # (K,)
+    to_normalized: np.ndarray | None = None  # 4×4 map of this frame to the normalized frame of cameras.npz
+
+    @property
+    def frame(self) -> np.ndarray:
+        """4×4 map from this data's frame to the normalized frame of ``cameras.npz`` (identity unless reframed)."""
+        return np.eye(4) if self.to_normalized is None else self.to_normalized
+
+    def reframe(self, center: np.ndarray, radius: float) -> "SceneData":
+        """The same views in the frame whose unit sphere is (``center``, ``radius``) of the current one
+        (see :meth:`dvr.cameras.Cameras.reframe`): cameras, projections and sparse depths change, pixels do not."""
+        cams = self.cams.reframe(center, radius)
+        T = np.eye(4)
+        T[:3, :3] *= radius
+        T[:3, 3] = center
+        dev = self.masks.device
+        f32 = dict(device=dev, dtype=torch.float32)
+        return SceneData(
+            images=self.images, masks=self.masks, cams=cams, Kinv=self.Kinv, Rt=self.Rt,
+            centers=torch.from_numpy(cams.centers).to(**f32), P=torch.from_numpy(cams.P).to(**f32), names=self.names,
+            depth_views=self.depth_views, depth_uv=self.depth_uv,
+            depth_val=None if self.depth_val is None else self.depth_val / radius,
+            to_normalized=self.frame @ T,
+        )
 
     @property
     def shape(self) -> tuple[int, int, int]:

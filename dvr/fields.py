@@ -2,12 +2,14 @@
 
 Two representations:
 
-* ``grid`` (default): occupancy = a learnable dense logit grid (initialised from the visual hull of the
-  masks, so training starts from a good shape) + a residual from multi-resolution tri-plane features and a
-  small MLP whose last layer starts at zero. Texture = its own tri-plane features + small MLP. Chosen by
-  measurement on 2 CPU cores (README, "Field representation"): 2-D ``grid_sample`` on planes is ~10× cheaper
-  than dense 3-D feature grids at the same detail, and a 1-channel dense grid at 96³ stays cheap.
-* ``mlp``: the reference — a plain ReLU MLP on Fourier-encoded xyz (the original DVR family), slow on CPU.
+* ``grid`` (default): occupancy = a learnable dense logit grid, initialised from the visual hull of the masks
+  (training starts from a good shape), optionally plus a residual from tri-plane features and a small MLP
+  (``occ_plane_res``, off by default). Texture = multi-resolution tri-plane features + a small MLP.
+  Chosen by measurement on 2 CPU cores (README, "Method notes"): a tri-plane shares each plane texel along a
+  whole line through the volume, so photometric updates of a seen surface also move unseen surfaces on the
+  same lines (ridges under objects); a 1-channel dense grid has no such coupling and is cheaper, while for
+  colour the tri-plane's coupling is harmless and its 2-D ``grid_sample`` is ~10× cheaper than 3-D features.
+* ``mlp``: the reference, a plain ReLU MLP on Fourier-encoded xyz (the original DVR family), slow on CPU.
 
 Both map points in the normalized frame (object inside the unit sphere) and work on any device.
 """
@@ -31,7 +33,9 @@ class FieldConfig:
     base_res: int = 96
     """Resolution of the dense occupancy logit grid (cells per axis over [-1, 1])."""
     plane_res: tuple[int, ...] = (64, 128, 256)
-    """Resolutions of the tri-plane feature levels (one set of three planes per level)."""
+    """Resolutions of the texture field's tri-plane levels (one set of three planes per level)."""
+    occ_plane_res: tuple[int, ...] = ()
+    """Resolutions of an optional tri-plane residual of the occupancy (empty: the dense grid alone)."""
     plane_features: int = 4
     """Feature channels per plane and level."""
     hidden: int = 32
@@ -86,8 +90,9 @@ class GridField(nn.Module):
         self.cfg = cfg
         r = cfg.base_res + 1
         self.base = nn.Parameter(torch.zeros(1, 1, r, r, r))
-        self.occ_planes = TriPlane(cfg.plane_res, cfg.plane_features)
-        self.occ_head = _mlp(self.occ_planes.out_dim, cfg.hidden, 1, 1, zero_last=True)
+        self.occ_planes = TriPlane(tuple(cfg.occ_plane_res), cfg.plane_features) if cfg.occ_plane_res else None
+        self.occ_head = _mlp(self.occ_planes.out_dim, cfg.hidden, 1, 1, zero_last=True) if cfg.occ_plane_res \
+            else None
         self.tex_planes = TriPlane(cfg.plane_res, cfg.plane_features, init_std=1e-1)
         self.tex_head = _mlp(self.tex_planes.out_dim, cfg.hidden, 3, 1)
 
@@ -100,12 +105,25 @@ class GridField(nn.Module):
         # grid_sample indexes volumes as [z, y, x] for coordinates (x, y, z)
         self.base.copy_(vol.permute(2, 1, 0)[None, None])
 
+    @torch.no_grad()
+    def resize_base(self, res: int) -> tuple[nn.Parameter, nn.Parameter]:
+        """Resample the dense logit grid to ``res`` cells per axis (trilinear, same function); returns
+        (old, new) parameter so an optimizer can swap them."""
+        old = self.base
+        if old.shape[-1] == res + 1:
+            return old, old
+        vol = F.interpolate(old.data, size=(res + 1,) * 3, mode="trilinear", align_corners=True)
+        self.base = nn.Parameter(vol.contiguous())
+        return old, self.base
+
     def base_logit(self, p: torch.Tensor) -> torch.Tensor:
         g = p.to(self.base.dtype).view(1, -1, 1, 1, 3)
         return F.grid_sample(self.base, g, mode="bilinear", padding_mode="border", align_corners=True).view(-1)
 
     def occupancy(self, p: torch.Tensor) -> torch.Tensor:
         """Occupancy logit at points p (M, 3) → (M,)."""
+        if self.occ_planes is None:
+            return self.base_logit(p)
         return self.base_logit(p) + self.occ_head(self.occ_planes(p)).view(-1)
 
     def texture(self, p: torch.Tensor) -> torch.Tensor:
@@ -113,17 +131,20 @@ class GridField(nn.Module):
         return torch.sigmoid(self.tex_head(self.tex_planes(p)))
 
     def occupancy_parameters(self) -> list[nn.Parameter]:
+        if self.occ_planes is None:
+            return [self.base]
         return [self.base, *self.occ_planes.parameters(), *self.occ_head.parameters()]
 
     def grid_parameters(self) -> list[nn.Parameter]:
-        return [self.base, *self.occ_planes.parameters(), *self.tex_planes.parameters()]
+        occ = [] if self.occ_planes is None else list(self.occ_planes.parameters())
+        return [self.base, *occ, *self.tex_planes.parameters()]
 
     def tv_loss(self) -> torch.Tensor:
         """Mean squared differences between neighbouring cells of the dense grid and the planes."""
         b = self.base
         tv = ((b[..., 1:, :, :] - b[..., :-1, :, :]) ** 2).mean()
         tv = tv + ((b[..., 1:, :] - b[..., :-1, :]) ** 2).mean() + ((b[..., 1:] - b[..., :-1]) ** 2).mean()
-        for planes in self.occ_planes.planes:
+        for planes in [] if self.occ_planes is None else self.occ_planes.planes:
             tv = tv + ((planes[..., 1:, :] - planes[..., :-1, :]) ** 2).mean()
             tv = tv + ((planes[..., 1:] - planes[..., :-1]) ** 2).mean()
         return tv

@@ -62,3 +62,20 @@ def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: 
     sdf = np.where(inside, d_in - 0.5, -(d_out - 0.5))
     logit = np.clip(sdf * (2.0 / slope_cells), -clamp, clamp)
     return torch.from_numpy(logit.astype(np.float32)).to(masks.device)
+
+
+def hull_bounding_sphere(P: torch.Tensor, masks: torch.Tensor, res: int = 64, min_views: int = 1,
+                         margin: float = 1.1) -> tuple[np.ndarray, float] | None:
+    """Centre and radius (this frame) of a sphere around the visual hull of the masks, × ``margin`` plus one
+    cell; ``None`` when the hull is empty or already fills the unit sphere (no tighter frame to gain)."""
+    pts = grid_points(res, device=masks.device)
+    pts = pts[pts.norm(dim=-1) <= 1.0]
+    inside = pts[~outside_hull(pts, P, masks, min_views)]
+    if inside.shape[0] < 8:
+        return None
+    lo, hi = inside.min(0).values, inside.max(0).values
+    c = 0.5 * (lo + hi)
+    r = float((inside - c).norm(dim=-1).max()) * margin + 2.0 * 3 ** 0.5 / res
+    if r >= 0.95:
+        return None
+    return c.double().cpu().numpy(), max(r, 4.0 / res)

@@ -19,7 +19,7 @@ from . import losses as L
 from .data import RaySampler, SceneData
 from .device import resolve_device
 from .fields import FieldConfig, finite_difference_normals, make_field
-from .hull import hull_logits, outside_hull
+from .hull import hull_bounding_sphere, hull_logits, outside_hull
 from .implicit import implicit_depth
 from .march import HIT, INSIDE, MISS, find_surface
 from .render import render_view
@@ -39,9 +39,10 @@ class LossWeights:
     """L1 between rendered and sparse SfM depth (only where depth/ exists)."""
     carve: float = 1.0
     """BCE→0 at random points of the unit sphere outside the visual hull of the masks."""
-    tv: float = 0.5
-    """Total variation of the occupancy grids."""
-    normal: float = 0.01
+    tv: float = 0.0
+    """Total variation of the occupancy grids (off: hull init and carving already keep space clean, and it
+    flattens the logit ramp where no ray looks)."""
+    normal: float = 0.05
     """Normal smoothness: |n(p̂) − n(p̂ + noise)| on hit points."""
 
 
@@ -75,9 +76,19 @@ class TrainConfig:
     """Guard of |∇ₚf·w| in the implicit gradient (sign-preserving)."""
     boundary_fraction: float = 0.25
     """Fraction of each batch drawn from a band around mask boundaries."""
+    coarse_res: int = 64
+    """Start the dense occupancy grid at this resolution and upsample it to field.base_res at
+    ``upsample_at`` × iterations (coarse to fine: a coarse grid converges in fewer steps; 0 = off)."""
+    upsample_at: float = 0.5
+    """Fraction of the iterations after which the coarse occupancy grid is upsampled."""
+    fit_frame: bool = True
+    """Train in a tighter unit sphere: the bounding sphere of the masks' visual hull × frame_margin (the
+    normalised frame of SfM is sized from all sparse points, background included)."""
+    frame_margin: float = 1.15
+    """Margin of the fitted working sphere around the visual hull."""
     hull_init: bool = True
     """Initialise the occupancy grid from the visual hull of the masks."""
-    hull_res: int = 96
+    hull_res: int = 64
     """Resolution of the visual-hull volume."""
     carve_min_views: int = 1
     """Views that must see a point outside their mask before it is carved."""
@@ -113,16 +124,26 @@ def _atomic_save(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def save_model(path: Path, model, cfg: FieldConfig, scale_mat: np.ndarray, extra: dict | None = None) -> None:
+def save_model(path: Path, model, cfg: FieldConfig, scale_mat: np.ndarray, extra: dict | None = None,
+               frame: np.ndarray | None = None) -> None:
+    """``scale_mat`` maps the field's frame to the SfM frame; ``frame`` maps it to the normalized frame of
+    cameras.npz (identity when the field was trained in that frame)."""
     _atomic_save({"field": model.state_dict(), "field_config": asdict(cfg), "scale_mat": scale_mat,
-                  **(extra or {})}, path)
+                  "frame": np.eye(4) if frame is None else frame, **(extra or {})}, path)
+
+
+def load_frame(path: Path) -> np.ndarray:
+    """The 4×4 map from a saved field's frame to the normalized frame of cameras.npz."""
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    return np.asarray(ck.get("frame", np.eye(4)), dtype=np.float64)
 
 
 def load_model(path: Path, device: torch.device):
-    """Load a field saved by :func:`save_model`: (field, scale_mat)."""
+    """Load a field saved by :func:`save_model`: (field, scale_mat: field frame → SfM frame)."""
     ck = torch.load(path, map_location=device, weights_only=False)
     fc = dict(ck["field_config"])
     fc["plane_res"] = tuple(fc["plane_res"])
+    fc["occ_plane_res"] = tuple(fc.get("occ_plane_res", ()))
     model = make_field(FieldConfig(**fc)).to(device)
     model.load_state_dict(ck["field"])
     model.eval()
@@ -134,6 +155,10 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, data: SceneData, out_dir: Path):
         self.cfg = cfg
+        if cfg.fit_frame:
+            sphere = hull_bounding_sphere(data.P, data.masks, 64, cfg.carve_min_views, cfg.frame_margin)
+            if sphere is not None:
+                data = data.reframe(*sphere)
         self.data = data
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
@@ -143,6 +168,15 @@ class Trainer:
         _set_seed(cfg.seed)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.model = make_field(cfg.field).to(self.device)
+        if cfg.coarse_res:
+            if not hasattr(self.model, "resize_base"):
+                raise ValueError(f"coarse_res needs field.kind 'grid', not '{cfg.field.kind}'")
+            if cfg.coarse_res >= cfg.field.base_res:
+                raise ValueError(f"coarse_res {cfg.coarse_res} must be below field.base_res {cfg.field.base_res} "
+                                 "(or 0 to train at one resolution)")
+            if not 0.0 < cfg.upsample_at < 1.0:
+                raise ValueError(f"upsample_at must lie in (0, 1), got {cfg.upsample_at}")
+            self.model.resize_base(cfg.coarse_res)
         if cfg.hull_init:
             self.model.init_occupancy(hull_logits(data.P, data.masks, cfg.hull_res, cfg.carve_min_views))
         grid_ids = {id(p) for p in self.model.grid_parameters()}
@@ -174,10 +208,26 @@ class Trainer:
             "rng_cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
         }, self.ckpt_path)
 
+    @property
+    def upsample_step(self) -> int | None:
+        c = self.cfg
+        return int(round(c.upsample_at * c.iterations)) if c.coarse_res else None
+
+    def _resize_grid(self, res: int) -> None:
+        """Upsample the occupancy grid and swap it into the optimizer (its Adam moments start afresh)."""
+        old, new = self.model.resize_base(res)
+        if new is old:
+            return
+        for g in self.opt.param_groups:
+            g["params"] = [new if p is old else p for p in g["params"]]
+        self.opt.state.pop(old, None)
+
     def try_resume(self) -> bool:
         if not self.ckpt_path.exists():
             return False
         ck = torch.load(self.ckpt_path, map_location=self.device, weights_only=False)
+        if "base" in ck["field"] and ck["field"]["base"].shape != self.model.base.shape:
+            self._resize_grid(ck["field"]["base"].shape[-1] - 1)  # the checkpoint is past the upsampling
         self.model.load_state_dict(ck["field"])
         self.opt.load_state_dict(ck["opt"])
         self.sched.load_state_dict(ck["sched"])
@@ -270,6 +320,8 @@ class Trainer:
         return total, stats
 
     def train_step(self, step: int) -> dict[str, float]:
+        if step == self.upsample_step:
+            self._resize_grid(self.cfg.field.base_res)
         self.opt.zero_grad(set_to_none=True)
         total, stats = self.losses(step)
         finite = bool(torch.isfinite(total))
@@ -338,7 +390,7 @@ class Trainer:
         """Write ``final.pt`` (weights + field config + scale_mat) and a last preview."""
         path = self.out / "final.pt"
         save_model(path, self.model, self.cfg.field, self.data.cams.scale_mat,
-                   {"step": self.step, "elapsed": self.elapsed, "train_config": asdict(self.cfg)})
+                   {"step": self.step, "elapsed": self.elapsed, "train_config": asdict(self.cfg)}, self.data.frame)
         self.preview("final")
         return path
 

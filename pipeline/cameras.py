@@ -155,12 +155,54 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     if rec is None or rec.num_reg_images() < 2:
         raise StageError(f"{inp}: SfM found no model (too few matches): photograph the object with more overlap "
                          "(≥ 60 % between neighbours), more texture, and sharp, well-lit images")
+    rec, notes = drop_tiny_distortion(rec, cfg.min_distortion_px)
+    for note in notes:
+        print(f"cameras: {note}")
     best = out / "best"
     if best.exists():
         shutil.rmtree(best)
     best.mkdir()
     rec.write(best)
     return rec, best, inp
+
+
+def drop_tiny_distortion(rec, max_px: float):
+    """Lens distortion that moves no image corner by ``max_px`` pixels or more is set to zero and the model
+    re-adjusted as a pinhole; returns (reconstruction, notes).
+
+    A sub-pixel distortion is within SfM's noise, and it trades off against the focal length (measured on
+    synthetic pinhole renders: k = −0.015 with the focal 1.6 % short, < 1 px at the corners, yet 6 dB less
+    held-out PSNR after undistortion). The pinhole is kept only if the mean reprojection error grows < 10 %.
+    """
+    import pycolmap
+
+    if max_px <= 0:
+        return rec, []
+    trial = pycolmap.Reconstruction(rec)
+    notes = []
+    for cid, cam in trial.cameras.items():
+        idx = list(cam.extra_params_idxs())
+        if not idx or not np.any(cam.params[idx]):
+            continue
+        corners = np.array([[0, 0], [cam.width, 0], [0, cam.height], [cam.width, cam.height]], float)
+        xn = np.c_[(corners[:, 0] - cam.principal_point_x) / cam.focal_length_x,
+                   (corners[:, 1] - cam.principal_point_y) / cam.focal_length_y, np.ones(4)]
+        shift = float(np.abs(cam.img_from_cam(xn) - corners).max())
+        if shift < max_px:
+            p = cam.params.copy()
+            p[idx] = 0.0
+            cam.params = p
+            notes.append(f"camera {cid}: lens distortion moves the corners by {shift:.2f} px (< {max_px}): pinhole")
+    if not notes:
+        return rec, []
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_extra_params = False
+    opts.print_summary = False
+    pycolmap.bundle_adjustment(trial, opts)
+    e0, e1 = rec.compute_mean_reprojection_error(), trial.compute_mean_reprojection_error()
+    if e1 > 1.1 * e0 + 0.01:
+        return rec, [f"distortion kept: as a pinhole the reprojection error grows from {e0:.3f} to {e1:.3f} px"]
+    return trial, notes + [f"mean reprojection error {e0:.3f} → {e1:.3f} px"]
 
 
 def report_sfm(rec, names: list[str], cfg: CamerasConfig) -> dict:

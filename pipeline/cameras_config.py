@@ -21,6 +21,9 @@ class CamerasConfig:
     """COLMAP incremental mapping, or global mapping (GLOMAP)."""
     camera_model: str = "SIMPLE_RADIAL"
     """COLMAP camera model estimated before undistortion."""
+    min_distortion_px: float = 1.0
+    """Lens distortion that moves no image corner by this many pixels is set to 0 (pinhole) and re-adjusted:
+    so small a distortion is noise that trades off against the focal length (0: keep whatever SfM fits)."""
     max_features: int = 8192
     """SIFT features per image."""
     min_registered_fraction: float = 0.5

@@ -24,12 +24,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from dvr.cameras import load_cameras
 from dvr.data import list_images
 from dvr.hull import hull_logits
-from dvr.march import HIT, INSIDE, find_surface
 
 from .cameras_config import MasksConfig
 from .config import config_hash
@@ -139,24 +137,36 @@ def seed_labels(P: np.ndarray, h: int, w: int, pts_n: np.ndarray | None, vis: li
 
 @torch.no_grad()
 def hull_silhouettes(P: torch.Tensor, masks: torch.Tensor, cams, res: int, min_views: int) -> np.ndarray:
-    """Render the visual hull (carving with ``min_views``) into every view: (N, H, W) bool."""
-    lg = hull_logits(P, masks, res=res, min_views=min_views, slope_cells=1.0)
-    grid = lg.permute(2, 1, 0)[None, None]
+    """Render the visual hull (carving with ``min_views``) into every view: (N, H, W) bool.
 
-    def f(p):
-        return F.grid_sample(grid, p.view(1, -1, 1, 1, 3), align_corners=True, padding_mode="border").view(-1)
+    The hull's logit volume becomes a mesh (marching cubes) and every pixel centre's ray is cast against it
+    (Embree through trimesh) — 40× faster than marching the volume along every ray.
+    """
+    import trimesh
+    from skimage import measure
 
     N, H, W = masks.shape
-    jj, ii = torch.meshgrid(torch.arange(W) + 0.5, torch.arange(H) + 0.5, indexing="xy")
-    uv = torch.stack([jj, ii, torch.ones_like(jj)], -1).view(-1, 3).double()
+    lg = hull_logits(P, masks, res=res, min_views=min_views, slope_cells=1.0).cpu().numpy()
+    if lg.max() <= 0:
+        return np.zeros((N, H, W), bool)
+    if lg.min() > 0:
+        return np.ones((N, H, W), bool)
+    v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
+    mesh = trimesh.Trimesh(v - 1.0, f, process=False)
+    try:
+        from trimesh.ray import ray_pyembree
+
+        inter = ray_pyembree.RayMeshIntersector(mesh)
+    except Exception:  # noqa: BLE001 - Embree is optional
+        inter = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
+    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    pix = np.stack([jj, ii, np.ones_like(jj)], -1).reshape(-1, 3)
     out = np.zeros((N, H, W), bool)
     for i in range(N):
-        K, R, t = (torch.from_numpy(a) for a in (cams.K[i], cams.R[i], cams.t[i]))
-        d = (uv @ torch.linalg.inv(K).T) @ R
-        d = (d / d.norm(dim=-1, keepdim=True)).float()
-        o = (-(R.T @ t)).float().expand_as(d)
-        res_ = find_surface(f, o.contiguous(), d.contiguous(), n_steps=2 * res, n_secant=0)
-        out[i] = ((res_.status == HIT) | (res_.status == INSIDE)).view(H, W).numpy()
+        d = pix @ np.linalg.inv(cams.K[i]).T @ cams.R[i]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o = np.broadcast_to(cams.centers[i], d.shape)
+        out[i] = inter.intersects_any(o, d).reshape(H, W)
     return out
 
 

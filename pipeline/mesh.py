@@ -11,7 +11,7 @@ import trimesh
 
 from dvr.device import resolve_device
 from dvr.extract import extract_mesh
-from dvr.trainer import load_model
+from dvr.trainer import load_frame, load_model
 
 from .config import MeshConfig, config_hash
 from .workspace import StageError, Workspace
@@ -45,10 +45,9 @@ def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> tuple[n
     return m.vertex_matrix(), m.face_matrix()
 
 
-def _export(path, verts, faces, colors, scale_mat, frame):
+def _export(path, verts, faces, colors, scale_mat, to_normalized, frame):
     m = trimesh.Trimesh(verts, faces, vertex_colors=colors, process=False)
-    if frame == "sfm":
-        m.apply_transform(scale_mat)
+    m.apply_transform(scale_mat if frame == "sfm" else to_normalized)
     m.export(path)
 
 
@@ -64,17 +63,19 @@ def run(ws: Workspace, cfg: MeshConfig, force: bool = False) -> bool:
     t0 = time.perf_counter()
     dev = resolve_device(cfg.device)
     field, scale_mat = load_model(final, dev)
+    to_norm = load_frame(final)
     v, f, c = extract_mesh(field, cfg.resolution, cfg.coarse_factor, cfg.refine_steps, device=dev)
     if len(f) == 0:
         raise StageError(f"{final}: the trained field has no surface; check masks/ and retrain (--force)")
     ws.mesh.mkdir(parents=True, exist_ok=True)
-    _export(raw, v, f, c, scale_mat, cfg.frame)
+    _export(raw, v, f, c, scale_mat, to_norm, cfg.frame)
     cv, cf = clean_mesh(v, f, cfg)
     with torch.no_grad():
         pts = torch.from_numpy(cv).float().to(dev)
         cc = torch.cat([field.texture(pts[s : s + 65536]) for s in range(0, len(pts), 65536)]) if len(pts) else \
             torch.zeros(0, 3)
-    _export(clean, cv, cf, (cc.clamp(0, 1) * 255).round().byte().cpu().numpy(), scale_mat, cfg.frame)
-    ws.mark_done("mesh", h, time.perf_counter() - t0, {"raw_faces": int(len(f)), "clean_faces": int(len(cf))})
+    _export(clean, cv, cf, (cc.clamp(0, 1) * 255).round().byte().cpu().numpy(), scale_mat, to_norm, cfg.frame)
+    ws.mark_done("mesh", h, time.perf_counter() - t0, {"raw_faces": int(len(f)), "clean_faces": int(len(cf)),
+                                                              "frame": cfg.frame})
     print(f"mesh: {len(f)} raw faces, {len(cf)} clean faces → {clean}")
     return True

@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -26,7 +27,7 @@ import xatlas
 from dvr.cameras import load_cameras
 from dvr.data import list_images
 from dvr.device import resolve_device
-from dvr.trainer import load_model
+from dvr.trainer import load_frame, load_model
 
 from .cameras_config import TextureConfig
 from .config import config_hash
@@ -219,13 +220,19 @@ def dilate_gutter(tex: np.ndarray, valid: np.ndarray, n: int) -> tuple[np.ndarra
     return tex, valid
 
 
-def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field=None) -> np.ndarray:
-    """Colours of the texels no photo sees: the trained texture field's when there is one, else the colour of
-    the nearest seen texel in 3-D (never black)."""
+def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field=None,
+                field_frame: np.ndarray | None = None) -> np.ndarray:
+    """Colours of the texels no photo sees: the trained texture field's when there is one (``field_frame``:
+    4×4 map of the field's frame to the frame of ``pts``), else the colour of the nearest seen texel in 3-D
+    (never black)."""
     if field is not None:
         dev = next(field.parameters()).device
+        q = pts[unseen]
+        if field_frame is not None:
+            inv = np.linalg.inv(field_frame)
+            q = q @ inv[:3, :3].T + inv[:3, 3]
         with torch.no_grad():
-            q = torch.from_numpy(pts[unseen]).float().to(dev)
+            q = torch.from_numpy(q).float().to(dev)
             return torch.cat([field.texture(q[s : s + 65536]) for s in range(0, len(q), 65536)]).cpu().numpy()
     if unseen.all():
         return np.full((int(unseen.sum()), 3), 0.5)
@@ -236,7 +243,7 @@ def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field=None
 
 
 def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams, cfg: TextureConfig,
-                 field=None):
+                 field=None, field_frame: np.ndarray | None = None):
     """Normalized-frame mesh → (new verts, new faces, uvs, texture (size, size, 3) float, stats)."""
     vmap, nf, uvs = make_atlas(verts_n, faces, cfg.size, cfg.padding)
     nv = verts_n[vmap]
@@ -249,7 +256,7 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
     col, wsum = bake(pts, nrm, images, cams, deps, cfg)
     unseen = wsum <= 0
     if unseen.any():
-        col[unseen] = fill_unseen(pts, col, unseen, field)
+        col[unseen] = fill_unseen(pts, col, unseen, field, field_frame)
     tex = np.zeros((cfg.size, cfg.size, 3), np.float32)
     tex[r, c] = col
     valid = fid >= 0
@@ -330,11 +337,18 @@ def run(ws: Workspace, cfg: TextureConfig, force: bool = False) -> bool:
     m = trimesh.load(clean, process=False)
     if len(m.faces) == 0:
         raise StageError(f"{clean}: empty mesh; retrain (train --force) or check the masks")
-    verts_n = (np.asarray(m.vertices) - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T
+    try:
+        mesh_frame = json.loads((ws.stages / "mesh.json").read_text()).get("frame", "sfm")
+    except (OSError, ValueError):
+        mesh_frame = "sfm"
+    verts_n = np.asarray(m.vertices, np.float64)
+    if mesh_frame == "sfm":
+        verts_n = (verts_n - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T
     images = [cv2.cvtColor(cv2.imread(str(p), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
               for p in paths]
     field = load_model(final, resolve_device(cfg.device))[0] if final.exists() else None
-    nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field)
+    nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field,
+                                           load_frame(final) if field is not None else None)
     out_v = nv @ S[:3, :3].T + S[:3, 3] if cfg.frame == "sfm" else nv
     export_textured(ws.mesh, out_v, nf, uvs, tex)
     stats.pop("filled")

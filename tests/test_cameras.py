@@ -79,3 +79,23 @@ def test_load_errors(tmp_path):
     np.savez(tmp_path / "d.npz", world_mat_0=np.eye(4)[:3])
     with pytest.raises(ValueError, match="2 images"):
         load_cameras(tmp_path / "d.npz", n_views=2)
+
+
+def test_reframe_keeps_projections_and_maps_depths():
+    """A camera in a tighter frame (x = c + r·x') projects x' where the original projects x; scale_mat
+    composes; ray depths scale by 1/r."""
+    from dvr.cameras import Cameras
+
+    K, R, t = _cam(3)
+    cams = Cameras(K[None], R[None], t[None], np.diag([2.0, 2.0, 2.0, 1.0]))
+    c, r = np.array([0.1, -0.2, 0.3]), 0.5
+    new = cams.reframe(c, r)
+    xp = np.random.default_rng(0).normal(size=(20, 3)) * 0.3
+    x = c + r * xp
+    a = (cams.P[0] @ np.c_[x, np.ones(20)].T).T
+    b = (new.P[0] @ np.c_[xp, np.ones(20)].T).T
+    assert np.allclose(a[:, :2] / a[:, 2:], b[:, :2] / b[:, 2:])
+    assert np.allclose(np.linalg.norm(x - cams.centers[0], axis=1) / r, np.linalg.norm(xp - new.centers[0], axis=1))
+    assert np.allclose(new.scale_mat[:3, 3], cams.scale_mat[:3, :3] @ c) and np.isclose(new.scale_mat[0, 0], 2 * r)
+    with pytest.raises(ValueError, match="radius"):
+        cams.reframe(c, 0.0)

@@ -24,7 +24,8 @@ def sphere(r=0.5, c=(0.0, 0.0, 0.0), k=10.0):
 
 def tiny_cfg(**kw):
     base = dict(iterations=6, batch_rays=256, depth_rays=32, carve_points=256, n_steps=32, n_steps_final=32,
-                hull_res=32, checkpoint_every=3, log_every=1, preview_every=0, progress=False, device="cpu",
+                hull_res=32, coarse_res=0, checkpoint_every=3, log_every=1, preview_every=0, progress=False,
+                device="cpu",
                 field=FieldConfig(base_res=32, plane_res=(16, 32), hidden=16))
     base.update(kw)
     return TrainConfig(**base)

@@ -216,3 +216,33 @@ def test_user_masks_validated(photo_ws, tmp_path, capsys):
     assert main(["masks", str(ws), "--masks", str(tmp_path / "m")]) == 0
     m = cv2.imread(str(ws / "masks" / "000003.png"), 0)
     assert m.shape == cv2.imread(str(ws / "images" / "000003.png"), 0).shape
+
+
+def _synthetic_model(k):
+    import pycolmap
+
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs, o.num_frames_per_rig, o.num_points3D = 1, 8, 300
+    o.camera_model_id = pycolmap.CameraModelId.SIMPLE_RADIAL
+    o.camera_params = [1280.0, 512.0, 384.0, k]
+    o.sensor_from_rig_translation_stddev = 0.0
+    o.sensor_from_rig_rotation_stddev = 0.0
+    return pycolmap.synthesize_dataset(o)
+
+
+def test_subpixel_distortion_becomes_pinhole_real_distortion_stays():
+    from pipeline.cameras import drop_tiny_distortion
+
+    rec = _synthetic_model(1e-4)  # moves the image corners by 0.02 px
+    out, notes = drop_tiny_distortion(rec, 1.0)
+    cam = next(iter(out.cameras.values()))
+    assert cam.params[3] == 0.0 and notes and "pinhole" in notes[0]
+    assert out.compute_mean_reprojection_error() < 0.1
+    assert next(iter(rec.cameras.values())).params[3] == 1e-4  # the input model is not modified
+    rec = _synthetic_model(0.05)  # tens of pixels at the corners: a real lens
+    out, notes = drop_tiny_distortion(rec, 1.0)
+    assert next(iter(out.cameras.values())).params[3] == 0.05 and notes == []
+    out, notes = drop_tiny_distortion(rec, 100.0)  # allowed to try: the pinhole fits worse, so it is refused
+    assert next(iter(out.cameras.values())).params[3] == 0.05 and "kept" in notes[0]
+    out, notes = drop_tiny_distortion(_synthetic_model(1e-4), 0.0)  # 0 disables the check
+    assert next(iter(out.cameras.values())).params[3] == 1e-4 and notes == []

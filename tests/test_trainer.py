@@ -52,3 +52,64 @@ def test_sampler_boundary_oversampling(small_ws):
     assert torch.allclose(d.norm(dim=-1), torch.ones(512))
     frac = m.mean().item()  # rays in the band straddle the boundary: both classes present
     assert 0.1 < frac < 0.9
+
+
+def test_coarse_to_fine_upsamples_and_resume_across_it(small_ws, tmp_path):
+    """The occupancy grid starts coarse, is upsampled at upsample_at; a run killed after the upsampling resumes
+    into the fine grid and ends where an uninterrupted run ends."""
+    from dvr.fields import FieldConfig
+
+    cfg = tiny_cfg(iterations=8, checkpoint_every=2, coarse_res=16, upsample_at=0.5,
+                   field=FieldConfig(base_res=32, plane_res=(16, 32), hidden=16))
+    data = load_scene(small_ws, torch.device("cpu"))
+    t = Trainer(cfg, data, tmp_path / "probe")
+    assert t.model.base.shape[-1] == 17
+    a = train(cfg, data, tmp_path / "a")
+    assert a.model.base.shape[-1] == 33
+    train(cfg, data, tmp_path / "b", stop_after=6)  # checkpoint at step 6, after the upsampling at step 4
+    b = Trainer(cfg, data, tmp_path / "b")
+    assert b.model.base.shape[-1] == 17 and b.try_resume() and b.step == 6 and b.model.base.shape[-1] == 33
+    b.fit()
+    for (k, va), vb in zip(a.model.state_dict().items(), b.model.state_dict().values()):
+        assert torch.allclose(va, vb, atol=1e-5), k
+    with __import__("pytest").raises(ValueError, match="coarse_res"):
+        Trainer(tiny_cfg(coarse_res=64), data, tmp_path / "c")
+
+
+def test_upsampling_keeps_the_function():
+    """Upsampling the logit grid keeps the field: exactly on the old lattice, closely between."""
+    from dvr.fields import FieldConfig, GridField
+
+    f = GridField(FieldConfig(base_res=8, plane_res=(8,), hidden=8))
+    with torch.no_grad():
+        f.base.copy_(torch.randn_like(f.base))
+    lattice = torch.stack(torch.meshgrid(*[torch.linspace(-1, 1, 9)] * 3, indexing="ij"), -1).view(-1, 3)
+    p = torch.rand(2000, 3) * 2 - 1
+    before_l, before_p = f.occupancy(lattice), f.occupancy(p)
+    old, new = f.resize_base(16)
+    assert new is f.base and old is not new and f.base.shape[-1] == 17
+    assert torch.allclose(f.occupancy(lattice), before_l, atol=1e-5)
+    assert (f.occupancy(p) - before_p).abs().mean() < 0.2 * before_p.abs().mean()
+
+
+def test_fitted_frame_is_saved_and_consistent(small_ws, tmp_path):
+    """Training in the hull's tighter sphere: final.pt's scale_mat = cameras' scale_mat · frame, and the field
+    sits where the object is (the GT torus surface has logits near 0 through that frame)."""
+    import numpy as np
+    import trimesh
+
+    from dvr.trainer import load_frame
+
+    cfg = tiny_cfg(iterations=2)
+    data = load_scene(small_ws, torch.device("cpu"))
+    t = train(cfg, data, tmp_path)
+    frame = load_frame(tmp_path / "final.pt")
+    _, scale = load_model(tmp_path / "final.pt", torch.device("cpu"))
+    assert frame[0, 0] < 0.95  # the torus (radius 0.7) does not fill the unit sphere: a tighter frame
+    assert np.allclose(scale, data.cams.scale_mat @ frame)
+    assert np.allclose(t.data.cams.P[0] / np.linalg.norm(t.data.cams.P[0]),
+                       (data.cams.P[0] @ frame) / np.linalg.norm(data.cams.P[0] @ frame))
+    gt = trimesh.load(small_ws / "gt" / "mesh.ply")
+    v = np.asarray(gt.vertices)
+    v_f = (v - scale[:3, 3]) / scale[0, 0]
+    assert np.abs(v_f).max() < 1.0  # the whole object is inside the working sphere

@@ -63,6 +63,10 @@ class MeshShape:
         if not path.exists():
             raise FileNotFoundError(f"{path}: mesh file of the scene not found; fix shape.path")
         m = trimesh.load(str(path), process=False, force="mesh")
+        if shape.up == "y":
+            m.apply_transform(np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]]))
+        elif shape.up != "z":
+            raise ValueError(f"shape.up must be 'z' or 'y', got '{shape.up}'")
         center = 0.5 * (m.bounds[0] + m.bounds[1])
         radius = np.linalg.norm(m.vertices - center, axis=1).max()
         m.apply_translation(-center)
@@ -225,8 +229,17 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
     """Render views: images (N,H,W,3) float, masks (N,H,W) bool, depth (N,H,W) canonical ray depth."""
     rig = scene.cameras
     H, W = rig.height, rig.width
-    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    ss = int(rig.supersample)
+    if ss < 1 or ss % 2 == 0:
+        raise ValueError(f"cameras.supersample must be an odd number ≥ 1, got {rig.supersample}")
+    # ss × ss samples per pixel (the middle one at the pixel centre: masks and depth come from it)
+    sub = (np.arange(ss) + 0.5) / ss
+    jj = (np.arange(W)[None, None, :, None] + sub[None, None, None, :]) * np.ones((H, ss, W, ss))
+    ii = (np.arange(H)[:, None, None, None] + sub[None, :, None, None]) * np.ones((H, ss, W, ss))
     pix = np.stack([jj, ii, np.ones_like(jj)], -1).reshape(-1, 3)
+    centre = np.zeros((H, ss, W, ss), bool)
+    centre[:, ss // 2, :, ss // 2] = True
+    centre = centre.reshape(-1)
     rng = np.random.default_rng(scene.cameras.seed + 1000 * view_seed)
     listed = {e.kind: e for e in scene.effects}
     need_normals = scene.lighting.kind != "none" or "specular" in listed
@@ -248,7 +261,7 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
                 full = np.zeros_like(pts)
                 full[hit] = nrm
                 nrm = full
-        img = np.zeros((H * W, 3))
+        img = np.zeros((len(pix), 3))
         if hit.any():
             col = albedo_of(scene, pts[hit], None if uv is None else uv[hit], mesh_shape.texture if mesh_shape else None)
             if scene.lighting.kind == "lambertian":
@@ -282,7 +295,8 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
             img[~hit] = (gray + bg.saturation * (col - gray)) * 0.9
         elif bg.kind != "none":
             raise ValueError(f"unknown background '{bg.kind}' (none, constant, backdrop)")
-        img = img.reshape(H, W, 3)
+        img = img.reshape(H, ss, W, ss, 3).mean(axis=(1, 3))  # box filter over the pixel
+        hit, depth = hit[centre], depth[centre]
         if "exposure" in listed:
             img = img * (1 + rng.uniform(-1, 1) * listed["exposure"].amount)
         if "blur" in listed:
@@ -292,7 +306,7 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
         imgs.append(np.clip(img, 0, 1))
         masks.append(hit.reshape(H, W))
         depths.append(np.where(hit, depth, 0.0).reshape(H, W))
-    for name, on in [("normals", need_normals), (f"lighting:{scene.lighting.kind}", scene.lighting.kind != "none"),
+    for name, on in [(f"supersample:{ss}", ss > 1), ("normals", need_normals), (f"lighting:{scene.lighting.kind}", scene.lighting.kind != "none"),
                      (f"background:{scene.background.kind}", scene.background.kind != "none")]:
         if on and name not in passes:
             passes.append(name)

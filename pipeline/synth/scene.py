@@ -33,6 +33,8 @@ class Shape:
     """mesh: an OBJ/PLY file; relative paths are relative to the scene file."""
     fit_radius: float = 0.8
     """mesh: scale so its bounding sphere has this radius (centred at the origin)."""
+    up: str = "z"
+    """mesh: the file's up axis, 'z' (used as is) or 'y' (rotated so that +y points up, +z in the scene)."""
 
 
 @dataclass
@@ -98,6 +100,8 @@ class CameraRig:
     """min/max elevation in degrees (views on a spiral)."""
     rings: int = 0
     """0: views on a spiral; k > 0: k rings of views at elevations evenly spaced over ``elevation``."""
+    supersample: int = 1
+    """odd k: k × k samples per pixel, box-filtered (anti-aliasing, as a real lens and sensor integrate)."""
     heldout: int = 0
     """extra views (between the training views) written to gt/heldout for evaluation."""
     seed: int = 0
