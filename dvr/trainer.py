@@ -78,7 +78,8 @@ class TrainConfig:
     """Fraction of each batch drawn from a band around mask boundaries."""
     coarse_res: int = 64
     """Start the dense occupancy grid at this resolution and upsample it to field.base_res at
-    ``upsample_at`` × iterations (coarse to fine: a coarse grid converges in fewer steps; 0 = off)."""
+    ``upsample_at`` × iterations (coarse to fine: a coarse grid converges in fewer steps; 0, or a value
+    ≥ field.base_res: one resolution throughout)."""
     upsample_at: float = 0.5
     """Fraction of the iterations after which the coarse occupancy grid is upsampled."""
     fit_frame: bool = True
@@ -168,12 +169,9 @@ class Trainer:
         _set_seed(cfg.seed)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.model = make_field(cfg.field).to(self.device)
-        if cfg.coarse_res:
+        if self.coarse:
             if not hasattr(self.model, "resize_base"):
                 raise ValueError(f"coarse_res needs field.kind 'grid', not '{cfg.field.kind}'")
-            if cfg.coarse_res >= cfg.field.base_res:
-                raise ValueError(f"coarse_res {cfg.coarse_res} must be below field.base_res {cfg.field.base_res} "
-                                 "(or 0 to train at one resolution)")
             if not 0.0 < cfg.upsample_at < 1.0:
                 raise ValueError(f"upsample_at must lie in (0, 1), got {cfg.upsample_at}")
             self.model.resize_base(cfg.coarse_res)
@@ -211,7 +209,12 @@ class Trainer:
     @property
     def upsample_step(self) -> int | None:
         c = self.cfg
-        return int(round(c.upsample_at * c.iterations)) if c.coarse_res else None
+        return int(round(c.upsample_at * c.iterations)) if self.coarse else None
+
+    @property
+    def coarse(self) -> bool:
+        c = self.cfg
+        return c.field.kind == "grid" and 0 < c.coarse_res < c.field.base_res
 
     def _resize_grid(self, res: int) -> None:
         """Upsample the occupancy grid and swap it into the optimizer (its Adam moments start afresh)."""

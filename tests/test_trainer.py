@@ -72,8 +72,8 @@ def test_coarse_to_fine_upsamples_and_resume_across_it(small_ws, tmp_path):
     b.fit()
     for (k, va), vb in zip(a.model.state_dict().items(), b.model.state_dict().values()):
         assert torch.allclose(va, vb, atol=1e-5), k
-    with __import__("pytest").raises(ValueError, match="coarse_res"):
-        Trainer(tiny_cfg(coarse_res=64), data, tmp_path / "c")
+    t = Trainer(tiny_cfg(coarse_res=64), data, tmp_path / "c")  # not below base_res: one resolution
+    assert t.upsample_step is None and t.model.base.shape[-1] == 33
 
 
 def test_upsampling_keeps_the_function():
