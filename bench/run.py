@@ -1,13 +1,22 @@
-"""What accuracy costs in time: run presets and knob sweeps end to end on synthetic scenes with ground truth.
+"""What accuracy costs in time: presets and knob sweeps, end to end, on synthetic scenes with ground truth and
+on the real DTU scan24 photos.
 
-    python bench/run.py --quick          # ≤ 10 min on 2 cores: fast + default presets, GT cameras
-    python bench/run.py                  # full set: + quality, SfM cameras, knob sweep
+    python bench/run.py --quick      # ≤ 10 min on 2 cores: fast + default on the cow, GT cameras
+    python bench/run.py --readme     # the full set (≤ 60 min on 2 cores), table + plot into README.md
 
-Each run is its own process (peak memory = its max RSS). Per run: seconds per stage, Chamfer and F-score@1 %
-of the GT diagonal (after Sim(3) alignment when cameras come from SfM), PSNR of the textured mesh at held-out
-views (object pixels). Writes bench/results/<date>-<machine>.json, a PNG plot of Chamfer against seconds with
-the Pareto front marked, and a Markdown table (printed; also between the BENCH markers of README.md with
---readme).
+Every run is its own process (peak memory = its max RSS) and goes through the same CLI a user runs. Per run:
+seconds per stage (cameras/masks/depth only with SfM), Chamfer and F-score@1 % of the GT bounding-box diagonal
+(after a Sim(3) alignment of the camera centres when cameras come from SfM), PSNR of the textured mesh at
+held-out views (pixels of the object in the photo or in the rendering), peak RSS. Scenes are rendered once
+and cached in bench/runs/ (ignored by git).
+
+DTU scan24 (49 real photos, no masks): our SfM against the given cameras (centre error after Sim(3), as a
+fraction of the orbit radius; rotation error), and held-out PSNR against time: every 7th photo is held out of
+masks-free training (cameras and masks are estimated from all photos, as a user would), the textured mesh is
+rendered at the held-out cameras and compared over the photo pixels the mesh or the automatic mask covers
+(also reported: over the mesh's pixels alone, and the fraction of the mask the mesh covers).
+
+Writes bench/results/<date>-<machine>[-quick].json and .png (accuracy against time, Pareto front marked).
 """
 
 from __future__ import annotations
@@ -21,16 +30,28 @@ import resource
 import shutil
 import subprocess
 import sys
-import tempfile
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+RUNS = ROOT / "bench" / "runs"
+DTU = ROOT.parent / "shared" / "data" / "dtu_scan24"
 SCENES = {
     "convex": ROOT / "configs" / "scenes" / "sphere_checker.yaml",
     "cow": ROOT / "configs" / "scenes" / "cow_backdrop.yaml",
     "thin": ROOT / "configs" / "scenes" / "thin_plate.yaml",
+}
+# knob sweep around the default preset (cow, GT cameras): name → (CLI overrides, scene overrides)
+KNOBS = {
+    "iterations=750": (["--train.iterations", "750"], {}),
+    "iterations=3000": (["--train.iterations", "3000"], {}),
+    "grid=64 (no coarse-to-fine)": (["--train.field.base-res", "64", "--train.coarse-res", "0"], {}),
+    "grid=128": (["--train.field.base-res", "128"], {}),
+    "n_steps=32→48": (["--train.n-steps", "32", "--train.n-steps-final", "48"], {}),
+    "images 200x150": ([], {"cameras": {"width": 200, "height": 150}}),
+    "texture=1024": (["--texture.size", "1024"], {}),
 }
 
 
@@ -49,64 +70,104 @@ def machine() -> dict:
     return info
 
 
-def runs(quick: bool) -> list[dict]:
-    out = []
-    for scene in ("convex", "cow"):
-        for preset in ("fast", "default"):
-            out.append({"scene": scene, "cameras": "gt", "preset": preset, "overrides": []})
+def plan(quick: bool) -> list[dict]:
     if quick:
-        return out
-    for scene in SCENES:
-        out.append({"scene": scene, "cameras": "gt", "preset": "quality", "overrides": []})
-        if scene != "convex":
-            out.append({"scene": scene, "cameras": "sfm", "preset": "default", "overrides": []})
-    for name, ov in [("iterations=250", ["--train.iterations", "250"]), ("iterations=3000", ["--train.iterations", "3000"]),
-                     ("n_steps=32", ["--train.n-steps", "32", "--train.n-steps-final", "32"]),
-                     ("base_res=64", ["--train.field.base-res", "64"]), ("texture=1024", ["--texture.size", "1024"])]:
-        out.append({"scene": "cow", "cameras": "gt", "preset": "default", "overrides": ov, "knob": name})
+        return [{"scene": "cow", "cameras": "gt", "preset": p} for p in ("fast", "default")]
+    out = [{"scene": s, "cameras": "gt", "preset": p} for s in SCENES for p in ("fast", "default", "quality")]
+    out += [{"scene": s, "cameras": "sfm", "preset": "default"} for s in SCENES]
+    out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k} for k in KNOBS]
+    out += [{"scene": "dtu", "cameras": "sfm", "preset": p} for p in ("fast", "default")]
     return out
 
 
-def one(spec: dict, work: Path) -> dict:
-    """Run one configuration end to end in this process; return its metrics."""
+# ----------------------------------------------------------------------------- one run (child process)
+def _scene(name: str, over: dict) -> Path:
+    """Render (once) the synthetic scene with overrides; returns its folder."""
+    import yaml
+
+    from pipeline.synth import scene_from_dict, write_scene
+
+    tag = name + ("-" + "-".join(f"{k}{sorted(v.items())}" for k, v in over.items()) if over else "")
+    tag = "".join(c if c.isalnum() or c in "-_" else "_" for c in tag)
+    out = RUNS / "scenes" / tag
+    if not (out / "gt" / "scene.json").exists():
+        d = yaml.safe_load(SCENES[name].read_text())
+        for k, v in over.items():
+            d[k] = {**d.get(k, {}), **v}
+        shutil.rmtree(out, ignore_errors=True)
+        write_scene(scene_from_dict(d, SCENES[name].parent), out)
+    return out
+
+
+def _main(args: list[str]) -> None:
+    from pipeline.cli import main
+
+    rc = main(args)
+    if rc != 0:
+        raise RuntimeError(f"stage failed: {' '.join(args[:2])}")
+
+
+def _pairs(ov: list[str], prefix: str) -> list[str]:
+    out, i = [], 0
+    while i < len(ov):
+        if ov[i].startswith(prefix):
+            out += ov[i : i + 2]
+        i += 2
+    return out
+
+
+def _psnr(img, photo, m) -> float:
+    import numpy as np
+
+    return float(-10 * np.log10(max(((img - photo)[m] ** 2).mean(), 1e-10))) if m.any() else float("nan")
+
+
+def _textured(ws: Path):
+    import numpy as np
+    import trimesh
+
+    tm = trimesh.load(ws / "mesh" / "textured.glb", force="mesh")
+    tex = np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
+    return tm, tex
+
+
+def run_synthetic(spec: dict, work: Path) -> dict:
     import cv2
     import numpy as np
     import trimesh
 
     from dvr.cameras import load_cameras
-    from dvr.metrics import chamfer_fscore, umeyama
-    from pipeline.cli import main
-    from pipeline.synth import load_scene_file, write_scene
+    from dvr.metrics import chamfer_fscore, pose_errors, umeyama
     from pipeline.texture import render_textured
     from pipeline.workspace import Workspace
 
-    syn = work / "synthetic"
-    write_scene(load_scene_file(SCENES[spec["scene"]]), syn)
+    cli, over = KNOBS.get(spec.get("knob"), ([], {}))
+    syn = _scene(spec["scene"], over)
     ws = work / "ws"
     cfg = ["--config", str(ROOT / "configs" / f"{spec['preset']}.yaml")]
-    ov = spec.get("overrides", [])
+    extra: dict = {}
     if spec["cameras"] == "gt":
-        shutil.copytree(syn, ws, ignore=shutil.ignore_patterns("gt"))
-        if (ws / "depth").exists():
-            shutil.rmtree(ws / "depth")
+        shutil.copytree(syn, ws, ignore=shutil.ignore_patterns("gt", "depth"))
     else:
-        assert main(["cameras", str(ws), "--images", str(syn / "images"), *cfg]) == 0
-        assert main(["masks", str(ws), *cfg]) == 0
-        assert main(["depth", str(ws), *cfg]) == 0
-    assert main(["train", str(ws), *cfg, "--train.no-progress", *_pairs(ov, "--train")]) == 0
-    assert main(["mesh", str(ws), *cfg, *_pairs(ov, "--mesh")]) == 0
-    assert main(["texture", str(ws), *cfg, *_pairs(ov, "--texture")]) == 0
+        _main(["cameras", str(ws), "--images", str(syn / "images"), *cfg])
+        _main(["masks", str(ws), *cfg])
+        _main(["depth", str(ws), *cfg])
+    _main(["train", str(ws), *cfg, "--train.no-progress", *_pairs(cli, "--train")])
+    _main(["mesh", str(ws), *cfg, *_pairs(cli, "--mesh")])
+    _main(["texture", str(ws), *cfg, *_pairs(cli, "--texture")])
 
     def centres(c):
         return c.centers @ c.scale_mat[:3, :3].T + c.scale_mat[:3, 3]
 
     est, gtc = load_cameras(ws / "cameras.npz"), load_cameras(syn / "cameras.npz")
-    s, R, t = umeyama(centres(gtc), centres(est)) if spec["cameras"] == "sfm" else (1.0, np.eye(3), np.zeros(3))
+    s, R, t = 1.0, np.eye(3), np.zeros(3)
+    if spec["cameras"] == "sfm":
+        s, R, t = umeyama(centres(gtc), centres(est))  # GT world → SfM frame
+        extra["pose"] = pose_errors(centres(est), est.R, centres(gtc), gtc.R)
     gt = trimesh.load(syn / "gt" / "mesh.ply")
     gt.apply_transform(np.block([[s * R, t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
     geo = chamfer_fscore(trimesh.load(ws / "mesh" / "clean.ply"), gt, n=50000)
-    tm = trimesh.load(ws / "mesh" / "textured.glb", force="mesh")
-    tex = np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
+    tm, tex = _textured(ws)
     hc = load_cameras(syn / "gt" / "heldout" / "cameras.npz")
     psnr = []
     for i in range(len(hc)):
@@ -115,22 +176,83 @@ def one(spec: dict, work: Path) -> dict:
         img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, hc.K[i], hc.R[i] @ R.T,
                                    s * R @ centres(hc)[i] + t, w, h)
         m = (cv2.imread(str(syn / "gt" / "heldout" / "masks" / f"{i:06d}.png"), 0) > 127) | hit
-        psnr.append(float(-10 * np.log10(max(((img - photo / 255.0)[m] ** 2).mean(), 1e-10))))
+        psnr.append(_psnr(img, photo / 255.0, m))
     secs = Workspace(ws).seconds()
-    return {**spec, "seconds": secs, "total_s": round(sum(secs.values()), 2), "chamfer_rel": geo["chamfer_rel"],
-            "fscore": geo["fscore"], "psnr": float(np.mean(psnr))}
+    return {"seconds": secs, "chamfer_rel": geo["chamfer_rel"], "fscore": geo["fscore"],
+            "psnr": float(np.mean(psnr)), **extra}
 
 
-def _pairs(ov: list[str], prefix: str) -> list[str]:
-    out = []
-    i = 0
-    while i < len(ov):
-        if ov[i].startswith(prefix):
-            out += ov[i : i + 2 if i + 1 < len(ov) and not ov[i + 1].startswith("--") else i + 1]
-        i += 1
-    return out
+def _dtu_shared() -> tuple[Path, dict]:
+    """Our SfM and automatic masks on all 49 DTU photos (cached): workspace and stage seconds."""
+    from pipeline.workspace import Workspace
+
+    ws = RUNS / "dtu_all"
+    if not (ws / ".stages" / "masks.json").exists():
+        shutil.rmtree(ws, ignore_errors=True)
+        _main(["cameras", str(ws), "--images", str(DTU / "images")])
+        _main(["masks", str(ws)])
+        _main(["depth", str(ws)])
+    return ws, Workspace(ws).seconds()
 
 
+def run_dtu(spec: dict, work: Path) -> dict:
+    import cv2
+    import numpy as np
+
+    from bench.dtu_reference import dtu_reference
+    from dvr.cameras import load_cameras
+    from dvr.data import list_images
+    from dvr.metrics import pose_errors
+    from pipeline.texture import render_textured
+    from pipeline.workspace import Workspace
+
+    full, shared_secs = _dtu_shared()
+    cams = load_cameras(full / "cameras.npz")
+    names = [p.stem for p in list_images(full / "images")]
+    _, Rg, Cg, _ = dtu_reference(DTU)
+    idx = [int(n) for n in names]  # registered photos (all 49 when SfM registers them all)
+    S = cams.scale_mat
+    c_sfm = cams.centers @ S[:3, :3].T + S[:3, 3]
+    pose = pose_errors(c_sfm, cams.R, Cg[idx], Rg[idx])
+    held = [i for i in range(len(names)) if i % 7 == 0]
+    train = [i for i in range(len(names)) if i % 7 != 0]
+    ws = work / "ws"
+    for sub in ("images", "masks", "depth"):
+        (ws / sub).mkdir(parents=True)
+        for i in train:
+            for f in (full / sub).glob(f"{names[i]}.*"):
+                shutil.copy2(f, ws / sub / f.name)
+    z = np.load(full / "cameras.npz")  # the training views' cameras, renumbered (SfM frame, same scale_mat)
+    np.savez(ws / "cameras.npz", scale_mat=z["scale_mat"],
+             **{f"{k}_{j}": z[f"{k}_{i}"] for j, i in enumerate(train) for k in ("world_mat", "scale_mat", "camera_mat")})
+    cfg = ["--config", str(ROOT / "configs" / f"{spec['preset']}.yaml")]
+    _main(["train", str(ws), *cfg, "--train.no-progress"])
+    _main(["mesh", str(ws), *cfg])
+    _main(["texture", str(ws), *cfg])
+    tm, tex = _textured(ws)
+    psnr, psnr_hit, cover = [], [], []
+    paths = list_images(full / "images")
+    for i in held:
+        photo = cv2.cvtColor(cv2.imread(str(paths[i])), cv2.COLOR_BGR2RGB) / 255.0
+        h, w = photo.shape[:2]
+        img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, cams.K[i], cams.R[i], c_sfm[i], w, h)
+        mask = cv2.imread(str(full / "masks" / f"{names[i]}.png"), 0) > 127
+        psnr.append(_psnr(img, photo, mask | hit))
+        psnr_hit.append(_psnr(img, photo, hit))
+        cover.append(float((mask & hit).sum() / max(1, mask.sum())))
+    secs = {**shared_secs, **{k: v for k, v in Workspace(ws).seconds().items() if k not in shared_secs}}
+    return {"seconds": secs, "chamfer_rel": None, "fscore": None, "psnr": float(np.mean(psnr)), "pose": pose,
+            "psnr_on_model": float(np.mean(psnr_hit)), "mask_covered": float(np.mean(cover)),
+            "views": {"train": len(train), "heldout": len(held), "registered": len(names)}}
+
+
+def one(spec: dict, work: Path) -> dict:
+    r = run_dtu(spec, work) if spec["scene"] == "dtu" else run_synthetic(spec, work)
+    r["total_s"] = round(sum(r["seconds"].values()), 2)
+    return {**spec, **r}
+
+
+# ----------------------------------------------------------------------------- report
 def pareto(points: list[tuple[float, float]]) -> list[int]:
     """Indices of points not dominated in (time ↓, error ↓)."""
     idx = []
@@ -140,78 +262,147 @@ def pareto(points: list[tuple[float, float]]) -> list[int]:
     return idx
 
 
-def plot(results: list[dict], out: Path) -> None:
+def label(r: dict) -> str:
+    return r.get("knob") or r["preset"]
+
+
+def plot(results: list[dict], out: Path, mach: dict) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for scene in sorted({r["scene"] for r in results}):
-        rs = sorted([r for r in results if r["scene"] == scene and "error" not in r], key=lambda r: r["total_s"])
-        if not rs:
-            continue
-        pts = [(r["total_s"], 100 * r["chamfer_rel"]) for r in rs]
-        line = ax.plot(*zip(*pts), "o-", alpha=0.6, label=scene)[0]
-        front = pareto(pts)
-        ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], "*", ms=14, color=line.get_color())
-        for r, (x, y) in zip(rs, pts):
-            ax.annotate(r.get("knob") or f"{r['preset']}/{r['cameras']}", (x, y), fontsize=7)
-    ax.set_xlabel("seconds, all stages (2 CPU cores)")
-    ax.set_ylabel("Chamfer, % of GT diagonal")
-    ax.set_title("accuracy against time (★ Pareto front)")
-    ax.legend()
+    ok = [r for r in results if "error" not in r]
+    fig, ax = plt.subplots(1, 2, figsize=(12, 4.8))
+    colors = {"convex": "tab:blue", "cow": "tab:orange", "thin": "tab:green", "dtu": "tab:red"}
+    for scene in colors:
+        for cams, mk in (("gt", "o"), ("sfm", "s")):
+            rs = sorted([r for r in ok if r["scene"] == scene and r["cameras"] == cams], key=lambda r: r["total_s"])
+            if not rs:
+                continue
+            lab = f"{scene} ({'GT cameras + masks' if cams == 'gt' else 'COLMAP + auto masks'})"
+            for k, (key, scale, name) in enumerate((("chamfer_rel", 100, "Chamfer, % of GT diagonal ↓"),
+                                                      ("psnr", 1, "held-out PSNR, dB ↑"))):
+                pts = [(r["total_s"], r[key] * scale) for r in rs if r[key] is not None]
+                if not pts:
+                    continue
+                a = ax[k]
+                a.plot(*zip(*pts), mk + ("-" if cams == "gt" and scene != "dtu" else ":"), color=colors[scene],
+                       alpha=0.7, label=lab)
+                errs = [(t, v if key == "chamfer_rel" else -v) for t, v in pts]
+                for i in pareto(errs):
+                    a.plot(*pts[i], "*", ms=15, color=colors[scene], markeredgecolor="k")
+                for r, (x, y) in zip([r for r in rs if r[key] is not None], pts):
+                    a.annotate(label(r), (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
+                a.set_xlabel("seconds, all stages")
+                a.set_ylabel(name)
+                a.set_xscale("log")
+    ax[0].legend(fontsize=7)
+    fig.suptitle(f"accuracy against time (★ Pareto front per scene) — {mach.get('model')}, "
+                 f"{mach.get('torch_threads')} threads{', ' + mach['gpu'] if 'gpu' in mach else ''}", fontsize=9)
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
 
 
+def _fmt(v, f):
+    return "–" if v is None else f.format(v)
+
+
 def table(results: list[dict], mach: dict) -> str:
-    lines = [f"Machine: {mach.get('model')} ({mach.get('torch_threads')} threads){', GPU ' + mach['gpu'] if 'gpu' in mach else ''}",
-             "", "| scene | cameras | preset / knob | seconds (all stages) | train s | Chamfer % | F@1 % | PSNR dB | peak RSS GB |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [f"Machine: {mach.get('model')}, {mach.get('cores')} cores, {mach.get('torch_threads')} torch threads"
+             f"{', GPU ' + mach['gpu'] if 'gpu' in mach else ', no GPU'}.", "",
+             "| scene | cameras | preset / knob | total s | cameras+masks s | train s | mesh+texture s | Chamfer % "
+             "| F@1 % | held-out PSNR dB | pose err (centre % / rot °) | peak RSS GB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         if "error" in r:
-            lines.append(f"| {r['scene']} | {r['cameras']} | {r.get('knob') or r['preset']} | failed: {r['error']} |||||| ")
+            lines.append(f"| {r['scene']} | {r['cameras']} | {label(r)} | failed: {r['error']} |||||||||")
             continue
-        lines.append(f"| {r['scene']} | {r['cameras']} | {r.get('knob') or r['preset']} | {r['total_s']:.0f} | "
-                     f"{r['seconds'].get('train', 0):.0f} | {100 * r['chamfer_rel']:.2f} | {r['fscore']:.3f} | "
-                     f"{r['psnr']:.1f} | {r['peak_rss_gb']:.2f} |")
+        s = r["seconds"]
+        pose = r.get("pose")
+        pe = f"{100 * pose['center_err_rel_max']:.2f} / {pose['rot_err_deg_mean']:.2f}" if pose else "–"
+        ch = None if r["chamfer_rel"] is None else 100 * r["chamfer_rel"]
+        lines.append(
+            f"| {r['scene']} | {'GT' if r['cameras'] == 'gt' else 'COLMAP'} | {label(r)} | {r['total_s']:.0f} | "
+            f"{s.get('cameras', 0) + s.get('masks', 0) + s.get('depth', 0):.0f} | {s.get('train', 0):.0f} | "
+            f"{s.get('mesh', 0) + s.get('texture', 0):.0f} | {_fmt(ch, '{:.2f}')} | {_fmt(r['fscore'], '{:.3f}')} | "
+            f"{r['psnr']:.1f} | {pe} | {r['peak_rss_gb']:.2f} |")
     return "\n".join(lines)
+
+
+def findings(results: list[dict]) -> list[str]:
+    """Which knob buys the most accuracy per second, and whether the default preset is on the Pareto front."""
+    ok = [r for r in results if "error" not in r]
+    out = []
+    base = next((r for r in ok if r["scene"] == "cow" and r["cameras"] == "gt" and r["preset"] == "default"
+                 and not r.get("knob")), None)
+    if base:
+        rates = []
+        for r in ok:
+            if r["scene"] == "cow" and r["cameras"] == "gt" and (r.get("knob") or r["preset"] != "default"):
+                dt = r["total_s"] - base["total_s"]
+                dc = 100 * (base["chamfer_rel"] - r["chamfer_rel"])  # Chamfer points gained
+                dp = r["psnr"] - base["psnr"]
+                rates.append((label(r), dt, dc, dp))
+        for name, dt, dc, dp in sorted(rates, key=lambda x: x[1]):
+            out.append(f"- {name}: {dt:+.0f} s → Chamfer {-dc:+.3f} points, PSNR {dp:+.2f} dB")
+    for scene in sorted({r["scene"] for r in ok if r["cameras"] == "gt"}):
+        rs = [r for r in ok if r["scene"] == scene and r["cameras"] == "gt"]
+        front = [rs[i] for i in pareto([(r["total_s"], r["chamfer_rel"]) for r in rs])]
+        d = [r for r in front if r["preset"] == "default" and not r.get("knob")]
+        out.append(f"- {scene}: default preset {'ON' if d else 'NOT on'} the time–Chamfer Pareto front "
+                   f"(front: {', '.join(label(r) for r in sorted(front, key=lambda r: r['total_s']))})")
+    return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--readme", action="store_true", help="write the table into README.md between BENCH markers")
+    ap.add_argument("--quick", action="store_true", help="fast + default on the cow with GT cameras (≤ 10 min)")
+    ap.add_argument("--readme", action="store_true", help="write the table and plot into README.md")
+    ap.add_argument("--only", type=str, default=None, help="run only specs whose scene matches (debugging)")
     ap.add_argument("--one", type=str, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.one:  # child process: one run
         spec = json.loads(a.one)
-        with tempfile.TemporaryDirectory() as td:
-            res = one(spec, Path(td))
+        work = RUNS / "work" / f"{os.getpid()}"
+        shutil.rmtree(work, ignore_errors=True)
+        work.mkdir(parents=True)
+        try:
+            res = one(spec, work)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
         res["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
         print("RESULT " + json.dumps(res))
         return
     mach = machine()
     results = []
-    for spec in runs(a.quick):
-        print(f"bench: {spec}", flush=True)
+    t0 = time.perf_counter()
+    specs = [s for s in plan(a.quick) if a.only is None or s["scene"] == a.only]
+    for k, spec in enumerate(specs):
+        print(f"[{k + 1}/{len(specs)}, {time.perf_counter() - t0:.0f} s] {spec}", flush=True)
         p = subprocess.run([sys.executable, __file__, "--one", json.dumps(spec)], capture_output=True, text=True,
                            cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
         line = next((x for x in p.stdout.splitlines() if x.startswith("RESULT ")), None)
         if line is None:
-            results.append({**spec, "error": (p.stderr.strip().splitlines() or ["?"])[-1][:200]})
+            err = [x for x in p.stderr.strip().splitlines() if not x.startswith(("I20", "W20"))] or ["?"]
+            results.append({**spec, "error": err[-1][:200]})
         else:
             results.append(json.loads(line[7:]))
-        print("   ", {k: results[-1].get(k) for k in ("total_s", "chamfer_rel", "fscore", "psnr", "error")}, flush=True)
+        print("   ", {k: results[-1].get(k) for k in ("total_s", "chamfer_rel", "fscore", "psnr", "error")},
+              flush=True)
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)
     stem = f"{datetime.date.today().isoformat()}-{platform.node() or 'machine'}{'-quick' if a.quick else ''}"
-    (out / f"{stem}.json").write_text(json.dumps({"machine": mach, "results": results}, indent=1))
-    plot(results, out / f"{stem}.png")
+    total = time.perf_counter() - t0
+    (out / f"{stem}.json").write_text(json.dumps({"machine": mach, "bench_seconds": round(total, 1),
+                                                  "results": results}, indent=1))
+    plot(results, out / f"{stem}.png", mach)
     md = table(results, mach)
+    notes = findings(results)
     print(md)
+    print("\n".join(notes))
+    print(f"bench: {len(results)} runs in {total / 60:.1f} min → {out / stem}.json, .png")
     if a.readme:
         readme = ROOT / "README.md"
         txt = readme.read_text()
@@ -219,7 +410,10 @@ def main() -> None:
         if start in txt and end in txt:
             pre, rest = txt.split(start, 1)
             _, post = rest.split(end, 1)
-            readme.write_text(f"{pre}{start}\n{md}\n\n![accuracy against time](bench/results/{stem}.png)\n{end}{post}")
+            body = (f"{md}\n\nWhole benchmark: {total / 60:.0f} min (`make bench`). Against the cow with GT "
+                    f"cameras at the default preset:\n\n" + "\n".join(notes) +
+                    f"\n\n![accuracy against time](bench/results/{stem}.png)\n")
+            readme.write_text(f"{pre}{start}\n{body}{end}{post}")
 
 
 if __name__ == "__main__":

@@ -79,3 +79,29 @@ def hull_bounding_sphere(P: torch.Tensor, masks: torch.Tensor, res: int = 64, mi
     if r >= 0.95:
         return None
     return c.double().cpu().numpy(), max(r, 4.0 / res)
+
+
+def carve_along_rays(logits: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor, depth: torch.Tensor,
+                     value: float = 10.0, chunk: int = 4096) -> torch.Tensor:
+    """Set to −``value`` (free) the lattice points of a (R+1)³ logit volume [x, y, z] over [-1, 1]³ nearest to
+    the rays' segments from the unit-sphere entry to ``depth`` minus half a cell diagonal (so no carved lattice
+    point lies behind ``depth``). Rays of non-positive length change nothing."""
+    from .cameras import sphere_bounds
+
+    out = logits.clone()
+    R = logits.shape[0] - 1
+    near, far, valid = sphere_bounds(origins, dirs)
+    end = torch.minimum(depth - 3 ** 0.5 / R, far)  # half the diagonal of a cell of size 2 / R
+    n = 2 * R  # two samples per cell along the longest chord
+    t = torch.linspace(0.0, 1.0, n, device=logits.device)
+    for s in range(0, origins.shape[0], chunk):
+        ok = valid[s : s + chunk] & (end[s : s + chunk] > near[s : s + chunk])
+        if not ok.any():
+            continue
+        o, d = origins[s : s + chunk][ok], dirs[s : s + chunk][ok]
+        a, b = near[s : s + chunk][ok], end[s : s + chunk][ok]
+        z = a[:, None] + (b - a)[:, None] * t[None]
+        p = o[:, None] + z[..., None] * d[:, None]
+        idx = ((p.reshape(-1, 3) + 1.0) * 0.5 * R).round().long().clamp(0, R)
+        out[idx[:, 0], idx[:, 1], idx[:, 2]] = torch.minimum(out[idx[:, 0], idx[:, 1], idx[:, 2]], torch.tensor(-value))
+    return out

@@ -19,7 +19,7 @@ from . import losses as L
 from .data import RaySampler, SceneData
 from .device import resolve_device
 from .fields import FieldConfig, finite_difference_normals, make_field
-from .hull import hull_bounding_sphere, hull_logits, outside_hull
+from .hull import carve_along_rays, hull_bounding_sphere, hull_logits, outside_hull
 from .implicit import implicit_depth
 from .march import HIT, INSIDE, MISS, find_surface
 from .render import render_view
@@ -37,6 +37,8 @@ class LossWeights:
     """BCE→1 for mask rays the rendering misses (at the max-logit sample, or at the sparse depth)."""
     depth: float = 1.0
     """L1 between rendered and sparse SfM depth (only where depth/ exists)."""
+    depth_free: float = 1.0
+    """BCE→0 at a random point of a sparse-depth ray in front of its depth (free space seen by SfM)."""
     carve: float = 1.0
     """BCE→0 at random points of the unit sphere outside the visual hull of the masks."""
     tv: float = 0.0
@@ -56,6 +58,8 @@ class TrainConfig:
     """Pixels (rays) per step."""
     depth_rays: int = 256
     """Extra rays per step through sparse-depth pixels (when depth/ exists)."""
+    depth_free_margin: float = 0.03
+    """Free-space points of sparse-depth rays stay this far (working-frame units) in front of the depth."""
     carve_points: int = 4096
     """Random points per step for visual-hull carving."""
     n_steps: int = 64
@@ -87,6 +91,9 @@ class TrainConfig:
     normalised frame of SfM is sized from all sparse points, background included)."""
     frame_margin: float = 1.15
     """Margin of the fitted working sphere around the visual hull."""
+    depth_carve_init: bool = True
+    """Carve the initial (hull) occupancy along every sparse-depth ray up to its depth: the space between a
+    camera and a point it observes is free (what masks cannot remove when the object fills the frame)."""
     hull_init: bool = True
     """Initialise the occupancy grid from the visual hull of the masks."""
     hull_res: int = 64
@@ -176,7 +183,12 @@ class Trainer:
                 raise ValueError(f"upsample_at must lie in (0, 1), got {cfg.upsample_at}")
             self.model.resize_base(cfg.coarse_res)
         if cfg.hull_init:
-            self.model.init_occupancy(hull_logits(data.P, data.masks, cfg.hull_res, cfg.carve_min_views))
+            vol = hull_logits(data.P, data.masks, cfg.hull_res, cfg.carve_min_views)
+            if cfg.depth_carve_init and data.depth_val is not None:
+                o, d = data.rays(data.depth_views, data.depth_uv)
+                vol = carve_along_rays(vol, o, d, data.depth_val - cfg.depth_free_margin,
+                                       value=3.0)  # just free: −10 would pull the nearby surface inwards
+            self.model.init_occupancy(vol)
         grid_ids = {id(p) for p in self.model.grid_parameters()}
         groups = [
             {"params": [p for p in self.model.parameters() if id(p) in grid_ids], "lr": cfg.lr_grid},
@@ -286,6 +298,7 @@ class Trainer:
         terms["depth"] = torch.zeros((), device=o.device)
         ds = self.sampler.sample_depth(c.depth_rays) if w.depth > 0 else None
         dep_pts = torch.zeros(0, 3, device=o.device)
+        free_pts = torch.zeros(0, 3, device=o.device)
         if ds is not None:
             do, dd, dz = ds
             dres = find_surface(m.occupancy, do, dd, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
@@ -294,6 +307,12 @@ class Trainer:
             zd = implicit_depth(m.occupancy, occ_params, do[dhit], dd[dhit], dres.depth[dhit], c.grad_eps)
             terms["depth"] = L.depth_loss(zd, dz[dhit])
             dep_pts = (do + dz[:, None] * dd)[~dres.hit]  # missed: push occupancy at the known depth
+            # the ray is free in front of a sparse depth: a random point between the sphere entry and just
+            # before it (carves what the masks cannot: concavities, objects that fill the frame)
+            front = dz - c.depth_free_margin > dres.near
+            ud = torch.rand(dz.shape[0], device=o.device)
+            zf = dres.near + ud * (dz - c.depth_free_margin - dres.near).clamp_min(0.0)
+            free_pts = (do + zf[:, None] * dd)[front]
 
         # carving: random points of the unit sphere outside the visual hull
         cp = torch.randn(c.carve_points, 3, device=o.device)
@@ -301,15 +320,13 @@ class Trainer:
         carve_pts = cp[outside_hull(cp, self.data.P, self.data.masks, c.carve_min_views)]
 
         # one field evaluation for all classification points
-        nf, no = fs_pts.shape[0], oc_pts.shape[0] + dep_pts.shape[0]
-        allp = torch.cat([fs_pts, oc_pts, dep_pts, carve_pts])
-        if allp.shape[0]:
-            lg = m.occupancy(allp)
-            terms["freespace"] = L.freespace_loss(lg[:nf])
-            terms["occupancy"] = L.occupancy_loss(lg[nf : nf + no])
-            terms["carve"] = L.freespace_loss(lg[nf + no :])
-        else:
-            terms["carve"] = torch.zeros((), device=o.device)
+        nf, no, nd = fs_pts.shape[0], oc_pts.shape[0] + dep_pts.shape[0], free_pts.shape[0]
+        allp = torch.cat([fs_pts, oc_pts, dep_pts, free_pts, carve_pts])
+        lg = m.occupancy(allp) if allp.shape[0] else torch.zeros(0, device=o.device)
+        terms["freespace"] = L.freespace_loss(lg[:nf])
+        terms["occupancy"] = L.occupancy_loss(lg[nf : nf + no])
+        terms["depth_free"] = L.freespace_loss(lg[nf + no : nf + no + nd])
+        terms["carve"] = L.freespace_loss(lg[nf + no + nd :])
 
         terms["tv"] = m.tv_loss()
         if w.normal > 0 and ph.shape[0] > 0:

@@ -17,6 +17,23 @@ from .config import MeshConfig, config_hash
 from .workspace import StageError, Workspace
 
 
+def keep_large_components(verts: np.ndarray, faces: np.ndarray, min_ratio: float) -> np.ndarray:
+    """Faces of the connected components with at least ``min_ratio`` × the faces of the largest (vertex
+    connectivity through a sparse graph: linear memory, unlike a face-adjacency split)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if len(faces) == 0:
+        return faces
+    n = len(verts)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    g = coo_matrix((np.ones(len(e), np.int8), (e[:, 0], e[:, 1])), shape=(n, n))
+    _, label = connected_components(g, directed=False)
+    fl = label[faces[:, 0]]
+    count = np.bincount(fl)
+    return faces[count[fl] >= min_ratio * count.max()]
+
+
 def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray]:
     """Small components, duplicates, degenerate faces, non-manifold edges, small holes, smoothing, decimation."""
     ms = pymeshlab.MeshSet()
@@ -27,15 +44,15 @@ def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> tuple[n
     ms.meshing_repair_non_manifold_edges()
     ms.meshing_remove_unreferenced_vertices()
     m = ms.current_mesh()
-    tm = trimesh.Trimesh(m.vertex_matrix(), m.face_matrix(), process=False)
-    comps = tm.split(only_watertight=False)
-    if len(comps) > 1:
-        largest = max(len(c.faces) for c in comps)
-        keep = [c for c in comps if len(c.faces) >= cfg.min_component_ratio * largest]
-        tm = trimesh.util.concatenate(keep)
-        ms = pymeshlab.MeshSet()
-        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=tm.vertices, face_matrix=tm.faces.astype(np.int32)))
-    ms.meshing_close_holes(maxholesize=30)
+    v, f = m.vertex_matrix(), keep_large_components(m.vertex_matrix(), m.face_matrix(), cfg.min_component_ratio)
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f.astype(np.int32)))
+    ms.meshing_remove_unreferenced_vertices()
+    try:
+        ms.meshing_close_holes(maxholesize=30)
+    except pymeshlab.PyMeshLabException:  # needs an edge-manifold mesh; leave the holes otherwise
+        pass
+    ms.set_selection_none()  # close_holes selects its new faces, and later filters would act on those only
     if cfg.smooth_iterations > 0:
         ms.apply_coord_taubin_smoothing(stepsmoothnum=cfg.smooth_iterations)
     if ms.current_mesh().face_number() > cfg.max_faces:

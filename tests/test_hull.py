@@ -33,3 +33,22 @@ def test_outside_hull_and_logits(small_ws):
     assert lg.shape == (33, 33, 33) and torch.isfinite(lg).all()
     with pytest.raises(Exception):
         outside_hull(pts[:, :2], data.P, data.masks)
+
+
+def test_carve_along_rays_frees_only_the_segment_in_front():
+    from dvr.hull import carve_along_rays, grid_points
+
+    R = 32
+    vol = torch.full((R + 1,) * 3, 5.0)
+    o = torch.tensor([[-3.0, 0.0, 0.0], [0.0, -3.0, 0.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    depth = torch.tensor([2.5, 1.5])  # x = −0.5 on the first ray; the second ends before the sphere (entry 2)
+    out = carve_along_rays(vol, o, d, depth, value=3.0)
+    pts = grid_points(R).view(R + 1, R + 1, R + 1, 3)
+    line = out[:, R // 2, R // 2]
+    x = pts[:, R // 2, R // 2, 0]
+    assert (line[x < -0.5 - 3 ** 0.5 / R - 1e-6] == -3.0).all()  # in front of the depth: free
+    assert (line[x >= -0.5] == 5.0).all()  # at and behind the depth: untouched
+    assert (out[R // 2, :, R // 2] == 5.0).all()  # the second ray has nothing inside the sphere to carve
+    assert (out != vol).sum() == (line != 5.0).sum()  # nothing else changed
+    assert torch.equal(carve_along_rays(vol, o, d, torch.zeros(2)), vol)
