@@ -51,12 +51,16 @@ def cpu_info() -> dict:
 
 def field_flops_per_point(cfg: FieldConfig) -> float:
     """Analytic fp32 FLOPs of occupancy + texture at one point (forward)."""
-    trilinear = 8 * 2  # one channel
-    planes = len(cfg.plane_res) * 3 * 4 * 2 * cfg.plane_features
-    d = len(cfg.plane_res) * cfg.plane_features
-    mlp_occ = 2 * (d * cfg.hidden + cfg.hidden * 1)
-    mlp_tex = 2 * (d * cfg.hidden + cfg.hidden * 3)
-    return trilinear + 2 * planes + mlp_occ + mlp_tex
+
+    def planes(res: tuple[int, ...]) -> tuple[float, int]:  # bilinear lookups on 3 planes per level, features
+        return len(res) * 3 * 4 * 2 * cfg.plane_features, len(res) * cfg.plane_features
+
+    flops = 8 * 2.0  # trilinear lookup in the dense occupancy logit grid (one channel)
+    if cfg.occ_plane_res:  # optional tri-plane residual + its one-hidden-layer head
+        f, d = planes(tuple(cfg.occ_plane_res))
+        flops += f + 2 * (d * cfg.hidden + cfg.hidden * 1)
+    f, d = planes(tuple(cfg.plane_res))  # texture: tri-plane + one-hidden-layer head
+    return flops + f + 2 * (d * cfg.hidden + cfg.hidden * 3)
 
 
 def throughput(dev: torch.device, cfg: FieldConfig, n: int = 262144, reps: int = 5) -> dict:

@@ -21,9 +21,11 @@ class CamerasConfig:
     """COLMAP incremental mapping, or global mapping (GLOMAP)."""
     camera_model: str = "SIMPLE_RADIAL"
     """COLMAP camera model estimated before undistortion."""
-    min_distortion_px: float = 1.0
-    """Lens distortion that moves no image corner by this many pixels is set to 0 (pinhole) and re-adjusted:
-    so small a distortion is noise that trades off against the focal length (0: keep whatever SfM fits)."""
+    pinhole_tolerance: float = 0.1
+    """After SfM the pinhole model (distortion 0, focal length and poses re-adjusted) replaces the fitted lens
+    distortion when its mean reprojection error is at most this fraction larger: on object-centric captures
+    distortion and focal length trade off (a pinhole render came out with k = 0.11 and an 11 % long focal length
+    at the same error). Negative: keep whatever SfM fits."""
     max_features: int = 8192
     """SIFT features per image."""
     min_registered_fraction: float = 0.5

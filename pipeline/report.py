@@ -68,8 +68,11 @@ def curves(log: Path, out: Path) -> Path | None:
     return out
 
 
-def renders(ws: Workspace, n: int = 4) -> list[tuple[str, str, float]]:
-    """(photo, render, masked PSNR) for a few views: the textured mesh ray-cast at the photos' cameras."""
+def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tuple[str, str, float]]:
+    """(photo, render, masked PSNR) for a few views: the textured mesh ray-cast at the photos' cameras.
+
+    With ``out_dir``, each photo | render pair is also written there as ``render_<tag>_<view>.png``.
+    """
     import trimesh
 
     from dvr.cameras import load_cameras
@@ -100,7 +103,11 @@ def renders(ws: Workspace, n: int = 4) -> list[tuple[str, str, float]]:
             m = cv2.imread(str(mp), 0) > 127 if mp.exists() else hit
             m = m | hit
             p = float(-10 * np.log10(max(((img - photo)[m] ** 2).mean(), 1e-10))) if m.any() else float("nan")
-            out.append((f"{tag} {paths[i].stem}", _png_b64((np.concatenate([photo, img], 1) * 255).astype(np.uint8)), p))
+            pair = (np.concatenate([photo, img], 1) * 255).round().astype(np.uint8)
+            if out_dir is not None:
+                cv2.imwrite(str(out_dir / f"render_{tag.replace('-', '')}_{paths[i].stem}.png"),
+                            cv2.cvtColor(pair, cv2.COLOR_RGB2BGR))
+            out.append((f"{tag} {paths[i].stem}", _png_b64(pair), p))
         if tag == "held-out":
             break
     return out
@@ -134,7 +141,7 @@ def build(ws: Workspace) -> str:
         else:
             parts.append("<p>(interactive viewer: run <code>make setup-web</code> to install model-viewer, then "
                          "rerun the report stage)</p>")
-    ren = renders(ws)
+    ren = renders(ws, out_dir=rep)
     if ren:
         parts.append("<h2>Photos (left) and the textured mesh (right)</h2>")
         for tag, uri, p in ren:

@@ -53,6 +53,16 @@ def test_kill_during_training_then_reconstruct_resumes(small_ws, tmp_path):
         assert (ws / f).exists(), f
     html = (ws / "report.html").read_text()
     assert "Stages" in html
+    pairs = sorted((ws / "report").glob("render_*.png"))  # photo | render strips, also as files
+    assert pairs, "report/render_*.png missing"
+    import cv2
+
+    pair = cv2.imread(str(pairs[0]))
+    _, tag, view = pairs[0].stem.split("_", 2)
+    src = ws / "gt" / "heldout" / "images" if tag == "heldout" else ws / "images"
+    photo = cv2.imread(str(next(src.glob(view + ".*"))))
+    assert pair.shape == (photo.shape[0], 2 * photo.shape[1], 3)
+    assert (pair[:, photo.shape[1]:] != pair[0, -1]).any()  # the render half is not blank
     for ext in ('src="http', "src='http", 'href="http', "href='http"):  # self-contained: nothing fetched
         assert ext not in html, ext
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")

@@ -195,9 +195,18 @@ def test_normalization_ignores_background_points():
         R = np.stack([x, np.cross(z, x), z])
         Ps.append(K @ np.concatenate([R, (-R @ c)[:, None]], 1))
         sizes.append((320, 240))
-    S = normalization(np.concatenate([obj, bg]), np.stack(Ps), np.asarray(sizes, float), centers, dirs, 1.1)
+    Ps, sizes = np.stack(Ps), np.asarray(sizes, float)
+    S = normalization(np.concatenate([obj, bg]), Ps, sizes, centers, dirs, 1.1)
     assert np.allclose(S[:3, 3], [1.0, 2.0, 3.0], atol=0.05)
     assert 0.5 < S[0, 0] < 1.0
+    # a weakly textured object: too few points of its own, the background's would set the radius; the images
+    # bound it (the sphere through the image corners: 4 · sin(atan(200 / 300)) = 2.2, × 1.25)
+    few = np.concatenate([obj[:10], bg])
+    assert normalization(few, Ps, sizes, centers, dirs, 1.1)[0, 0] > 3.5  # up to the cameras without focals
+    S = normalization(few, Ps, sizes, centers, dirs, 1.1, focals=np.full(12, 300.0))
+    assert np.allclose(S[:3, 3], [1.0, 2.0, 3.0], atol=0.05)
+    assert abs(S[0, 0] - 1.25 * 4 * np.sin(np.arctan(200 / 300))) < 1e-6
+    assert 0.5 < normalization(np.concatenate([obj, bg]), Ps, sizes, centers, dirs, 1.1, np.full(12, 300.0))[0, 0] < 1
 
 
 def test_user_masks_validated(photo_ws, tmp_path, capsys):
@@ -230,19 +239,27 @@ def _synthetic_model(k):
     return pycolmap.synthesize_dataset(o)
 
 
-def test_subpixel_distortion_becomes_pinhole_real_distortion_stays():
-    from pipeline.cameras import drop_tiny_distortion
+def test_pinhole_replaces_distortion_that_explains_nothing_real_distortion_stays():
+    from pipeline.cameras import prefer_pinhole
 
     rec = _synthetic_model(1e-4)  # moves the image corners by 0.02 px
-    out, notes = drop_tiny_distortion(rec, 1.0)
+    out, notes = prefer_pinhole(rec, 0.1)
     cam = next(iter(out.cameras.values()))
     assert cam.params[3] == 0.0 and notes and "pinhole" in notes[0]
     assert out.compute_mean_reprojection_error() < 0.1
     assert next(iter(rec.cameras.values())).params[3] == 1e-4  # the input model is not modified
-    rec = _synthetic_model(0.05)  # tens of pixels at the corners: a real lens
-    out, notes = drop_tiny_distortion(rec, 1.0)
-    assert next(iter(out.cameras.values())).params[3] == 0.05 and notes == []
-    out, notes = drop_tiny_distortion(rec, 100.0)  # allowed to try: the pinhole fits worse, so it is refused
+    # a pinhole scene that SfM fitted with a spurious distortion and a long focal length: the true focal returns
+    rec = _synthetic_model(0.0)
+    cam = next(iter(rec.cameras.values()))
+    cam.params = [1280.0 * 1.05, 512.0, 384.0, 0.02]
+    rec.cameras[cam.camera_id] = cam
+    assert next(iter(rec.cameras.values())).params[3] == 0.02
+    out, notes = prefer_pinhole(rec, 0.1)
+    cam = next(iter(out.cameras.values()))
+    assert notes and "pinhole" in notes[-1]
+    assert cam.params[3] == 0.0 and abs(cam.params[0] / 1280.0 - 1) < 0.005, cam.params
+    rec = _synthetic_model(0.05)  # tens of pixels at the corners: a real lens, which a pinhole fits worse
+    out, notes = prefer_pinhole(rec, 0.1)
     assert next(iter(out.cameras.values())).params[3] == 0.05 and "kept" in notes[0]
-    out, notes = drop_tiny_distortion(_synthetic_model(1e-4), 0.0)  # 0 disables the check
+    out, notes = prefer_pinhole(_synthetic_model(1e-4), -1.0)  # negative disables the check
     assert next(iter(out.cameras.values())).params[3] == 1e-4 and notes == []
