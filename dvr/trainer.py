@@ -7,6 +7,7 @@ import math
 import os
 import random
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -351,9 +352,12 @@ class Trainer:
         grads = [p.grad for p in self.model.parameters() if p.grad is not None]
         if finite and all(bool(torch.isfinite(g).all()) for g in grads):
             self.opt.step()
+            self.sched.step()
         else:
             self.skipped += 1
-        self.sched.step()
+            with warnings.catch_warnings():  # the schedule follows the step count, skipped steps included
+                warnings.simplefilter("ignore", UserWarning)
+                self.sched.step()
         stats["loss"] = float(total.detach()) if finite else float("nan")
         return stats
 
