@@ -307,6 +307,30 @@ def import_cameras(ws: Workspace, photos: list[Path], cam_file: Path, cfg: Camer
     return {"views": [p.stem for p in photos], "given": str(cam_file)}
 
 
+def import_colmap_model(ws: Workspace, photos: list[Path], images: Path, model: Path, cfg: CamerasConfig) -> dict:
+    """Use a given COLMAP sparse model (cameras/images/points3D .bin or .txt, image names relative to the photo
+    folder): skip SfM, undistort and normalise as after our own SfM."""
+    import pycolmap
+
+    try:
+        rec = pycolmap.Reconstruction(model)
+    except Exception as exc:  # noqa: BLE001
+        raise StageError(f"{model}: not a COLMAP sparse model ({exc}); pass the folder holding cameras.bin, "
+                         "images.bin and points3D.bin (or their .txt)") from exc
+    missing = [rec.image(i).name for i in rec.reg_image_ids() if not (images / rec.image(i).name).exists()]
+    if rec.num_reg_images() == 0 or missing:
+        raise StageError(f"{model}: {len(missing) or 'no'} registered image(s) of the model not found in {images} "
+                         f"({', '.join(missing[:5])}); pass the photo folder the model was made from")
+    best = ws.root / "sfm" / "sparse" / "best"
+    best.mkdir(parents=True, exist_ok=True)
+    rec.write(best)
+    names = [p.stem for p in photos]
+    info = report_sfm(rec, names, cfg)
+    info.update(export_model(ws, rec, images, cfg, names))
+    info["given"] = str(model)
+    return info
+
+
 def run(ws: Workspace, images: Path | None, cfg: CamerasConfig, cameras: Path | None = None,
         force: bool = False) -> bool:
     if images is None:
@@ -329,7 +353,9 @@ def run(ws: Workspace, images: Path | None, cfg: CamerasConfig, cameras: Path | 
         raise StageError(f"{images}: {len(photos)} usable photo(s); at least 3 are needed (20–60 around the object is "
                          "typical)")
     t0 = time.perf_counter()
-    if cameras is not None:
+    if cameras is not None and Path(cameras).is_dir():
+        info = import_colmap_model(ws, photos, images, Path(cameras), cfg)
+    elif cameras is not None:
         info = import_cameras(ws, photos, Path(cameras), cfg)
     else:
         rec, _, inp = run_sfm(ws, photos, cfg)

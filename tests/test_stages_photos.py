@@ -179,6 +179,21 @@ def test_given_cameras_skip_sfm(photo_ws, tmp_path):
     assert main(["depth", str(ws)]) == 0 and not (ws / "depth").exists()
 
 
+def test_given_colmap_model_skips_sfm(photo_ws, tmp_path, capsys):
+    syn, ws0 = photo_ws
+    model = tmp_path / "model"
+    shutil.copytree(ws0 / "sfm" / "sparse" / "best", model)  # a COLMAP model made from these photos
+    ws = tmp_path / "given_model"
+    assert main(["cameras", str(ws), "--images", str(syn / "images"), "--cameras", str(model)]) == 0
+    a, b = load_cameras(ws / "cameras.npz"), load_cameras(ws0 / "cameras.npz")
+    assert np.allclose(a.P, b.P, atol=1e-6) and np.allclose(a.scale_mat, b.scale_mat)
+    assert sorted(p.name for p in (ws / "images").iterdir()) == sorted(p.name for p in (ws0 / "images").iterdir())
+    assert main(["depth", str(ws)]) == 0 and len(list((ws / "depth").glob("*.npz"))) > 0
+    assert main(["cameras", str(tmp_path / "bad"), "--images", str(syn / "images"), "--cameras",
+                 str(tmp_path)]) == 2  # a folder that is no model
+    assert "not a COLMAP sparse model" in capsys.readouterr().err
+
+
 def test_normalization_ignores_background_points():
     rng = np.random.default_rng(0)
     obj = rng.normal(size=(500, 3)) * 0.2 + [1.0, 2.0, 3.0]
