@@ -48,11 +48,16 @@ class Cameras:
         x_this = center + radius · x_new. ``scale_mat`` becomes new → SfM; depths scale by 1/radius."""
         if not (radius > 0 and np.isfinite(radius)):
             raise ValueError(f"reframe: radius must be positive and finite, got {radius}")
-        T = np.eye(4)
-        T[:3, :3] *= radius
-        T[:3, 3] = center
         t = (np.einsum("nij,j->ni", self.R, np.asarray(center, float)) + self.t) / radius
-        return Cameras(self.K.copy(), self.R.copy(), t, self.scale_mat @ T)
+        return Cameras(self.K.copy(), self.R.copy(), t, self.scale_mat @ sphere_frame(center, radius))
+
+
+def sphere_frame(center: np.ndarray, radius: float) -> np.ndarray:
+    """4×4 map x ↦ center + radius · x from the frame whose unit sphere is the sphere (``center``, ``radius``)."""
+    T = np.eye(4)
+    T[:3, :3] *= radius
+    T[:3, 3] = center
+    return T
 
 
 def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

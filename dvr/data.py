@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import torch
 
-from .cameras import Cameras, load_cameras
+from .cameras import Cameras, load_cameras, sphere_frame
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 
@@ -68,9 +68,6 @@ class SceneData:
         """The same views in the frame whose unit sphere is (``center``, ``radius``) of the current one
         (see :meth:`dvr.cameras.Cameras.reframe`): cameras, projections and sparse depths change, pixels do not."""
         cams = self.cams.reframe(center, radius)
-        T = np.eye(4)
-        T[:3, :3] *= radius
-        T[:3, 3] = center
         dev = self.masks.device
         f32 = dict(device=dev, dtype=torch.float32)
         return SceneData(
@@ -78,7 +75,7 @@ class SceneData:
             centers=torch.from_numpy(cams.centers).to(**f32), P=torch.from_numpy(cams.P).to(**f32), names=self.names,
             depth_views=self.depth_views, depth_uv=self.depth_uv,
             depth_val=None if self.depth_val is None else self.depth_val / radius,
-            to_normalized=self.frame @ T,
+            to_normalized=self.frame @ sphere_frame(center, radius),
         )
 
     @property

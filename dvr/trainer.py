@@ -141,14 +141,9 @@ def save_model(path: Path, model, cfg: FieldConfig, scale_mat: np.ndarray, extra
                   "frame": np.eye(4) if frame is None else frame, **(extra or {})}, path)
 
 
-def load_frame(path: Path) -> np.ndarray:
-    """The 4×4 map from a saved field's frame to the normalized frame of cameras.npz."""
-    ck = torch.load(path, map_location="cpu", weights_only=False)
-    return np.asarray(ck.get("frame", np.eye(4)), dtype=np.float64)
-
-
 def load_model(path: Path, device: torch.device):
-    """Load a field saved by :func:`save_model`: (field, scale_mat: field frame → SfM frame)."""
+    """Load a field saved by :func:`save_model`: (field, scale_mat: field frame → SfM frame, frame: field frame →
+    normalized frame of cameras.npz)."""
     ck = torch.load(path, map_location=device, weights_only=False)
     fc = dict(ck["field_config"])
     fc["plane_res"] = tuple(fc["plane_res"])
@@ -156,7 +151,7 @@ def load_model(path: Path, device: torch.device):
     model = make_field(FieldConfig(**fc)).to(device)
     model.load_state_dict(ck["field"])
     model.eval()
-    return model, ck["scale_mat"]
+    return model, ck["scale_mat"], np.asarray(ck.get("frame", np.eye(4)), dtype=np.float64)
 
 
 class Trainer:

@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dvr.cameras import decompose_projection, save_cameras
+from dvr.cameras import decompose_projection, save_cameras, sphere_frame
 from dvr.data import IMAGE_EXTS
 
 from .cameras_config import CamerasConfig
@@ -110,11 +110,7 @@ def normalization(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, centers
     if focals is not None:
         half_diag = np.arctan(0.5 * np.hypot(sizes[:, 0], sizes[:, 1]) / np.asarray(focals, float))
         r = min(r, 1.25 * float(np.median(dist * np.sin(half_diag))))
-    r = min(r, 0.95 * dist.min())
-    S = np.eye(4)
-    S[:3, :3] *= r
-    S[:3, 3] = c
-    return S
+    return sphere_frame(c, min(r, 0.95 * dist.min()))
 
 
 # ----------------------------------------------------------------------------- SfM

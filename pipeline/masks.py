@@ -31,6 +31,7 @@ from dvr.hull import hull_logits
 
 from .cameras_config import MasksConfig
 from .config import config_hash
+from .raycast import mesh_intersector, pixel_center_rays
 from .workspace import StageError, Workspace
 
 
@@ -152,20 +153,10 @@ def hull_silhouettes(P: torch.Tensor, masks: torch.Tensor, cams, res: int, min_v
     if lg.min() > 0:
         return np.ones((N, H, W), bool)
     v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
-    mesh = trimesh.Trimesh(v - 1.0, f, process=False)
-    try:
-        from trimesh.ray import ray_pyembree
-
-        inter = ray_pyembree.RayMeshIntersector(mesh)
-    except Exception:  # noqa: BLE001 - Embree is optional
-        inter = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
-    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    pix = np.stack([jj, ii, np.ones_like(jj)], -1).reshape(-1, 3)
+    inter = mesh_intersector(trimesh.Trimesh(v - 1.0, f, process=False))
     out = np.zeros((N, H, W), bool)
     for i in range(N):
-        d = pix @ np.linalg.inv(cams.K[i]).T @ cams.R[i]
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        o = np.broadcast_to(cams.centers[i], d.shape)
+        o, d = pixel_center_rays(cams.K[i], cams.R[i], cams.centers[i], W, H)
         out[i] = inter.intersects_any(o, d).reshape(H, W)
     return out
 

@@ -11,7 +11,7 @@ import trimesh
 
 from dvr.device import resolve_device
 from dvr.extract import extract_mesh
-from dvr.trainer import load_frame, load_model
+from dvr.trainer import load_model
 
 from .config import MeshConfig, config_hash
 from .workspace import StageError, Workspace
@@ -79,8 +79,7 @@ def run(ws: Workspace, cfg: MeshConfig, force: bool = False) -> bool:
     ws.clear("mesh")
     t0 = time.perf_counter()
     dev = resolve_device(cfg.device)
-    field, scale_mat = load_model(final, dev)
-    to_norm = load_frame(final)
+    field, scale_mat, to_norm = load_model(final, dev)
     v, f, c = extract_mesh(field, cfg.resolution, cfg.coarse_factor, cfg.refine_steps, device=dev)
     if len(f) == 0:
         raise StageError(f"{final}: the trained field has no surface; check masks/ and retrain (--force)")

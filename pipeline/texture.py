@@ -27,10 +27,11 @@ import xatlas
 from dvr.cameras import load_cameras
 from dvr.data import list_images
 from dvr.device import resolve_device
-from dvr.trainer import load_frame, load_model
+from dvr.trainer import load_model
 
 from .cameras_config import TextureConfig
 from .config import config_hash
+from .raycast import mesh_intersector, pixel_center_rays
 from .workspace import StageError, Workspace
 
 
@@ -86,19 +87,10 @@ def texel_geometry(fid: np.ndarray, uvs: np.ndarray, faces: np.ndarray, verts: n
 
 def depth_maps(mesh: trimesh.Trimesh, cams, sizes: list[tuple[int, int]]) -> list[np.ndarray]:
     """Per view, the ray depth of the first mesh hit at every pixel centre (inf where none)."""
-    try:
-        from trimesh.ray import ray_pyembree
-
-        inter = ray_pyembree.RayMeshIntersector(mesh)
-    except Exception:  # noqa: BLE001 - Embree is optional
-        inter = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
+    inter = mesh_intersector(mesh)
     out = []
     for i, (w, h) in enumerate(sizes):
-        jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-        pix = np.stack([jj, ii, np.ones_like(jj)], -1).reshape(-1, 3)
-        d = pix @ np.linalg.inv(cams.K[i]).T @ cams.R[i]
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        o = np.broadcast_to(cams.centers[i], d.shape)
+        o, d = pixel_center_rays(cams.K[i], cams.R[i], cams.centers[i], w, h)
         loc, ir, _ = inter.intersects_location(o, d, multiple_hits=False)
         dep = np.full(len(d), np.inf)
         if len(ir):
@@ -271,18 +263,8 @@ def render_textured(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: 
                     R: np.ndarray, center: np.ndarray, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
     """Ray-cast a UV-textured mesh (same frame as the camera): image (h, w, 3) and hit mask (h, w)."""
     mesh = trimesh.Trimesh(verts, faces, process=False)
-    try:
-        from trimesh.ray import ray_pyembree
-
-        inter = ray_pyembree.RayMeshIntersector(mesh)
-    except Exception:  # noqa: BLE001
-        inter = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
-    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    pix = np.stack([jj, ii, np.ones_like(jj)], -1).reshape(-1, 3)
-    d = pix @ np.linalg.inv(K).T @ R
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o = np.broadcast_to(center, d.shape)
-    loc, ir, it = inter.intersects_location(o, d, multiple_hits=False)
+    o, d = pixel_center_rays(K, R, center, w, h)
+    loc, ir, it = mesh_intersector(mesh).intersects_location(o, d, multiple_hits=False)
     img = np.zeros((h * w, 3))
     hit = np.zeros(h * w, bool)
     if len(ir):
@@ -346,9 +328,8 @@ def run(ws: Workspace, cfg: TextureConfig, force: bool = False) -> bool:
         verts_n = (verts_n - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T
     images = [cv2.cvtColor(cv2.imread(str(p), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
               for p in paths]
-    field = load_model(final, resolve_device(cfg.device))[0] if final.exists() else None
-    nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field,
-                                           load_frame(final) if field is not None else None)
+    field, _, field_frame = load_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
+    nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame)
     out_v = nv @ S[:3, :3].T + S[:3, 3] if cfg.frame == "sfm" else nv
     export_textured(ws.mesh, out_v, nf, uvs, tex)
     stats.pop("filled")

@@ -32,7 +32,7 @@ def test_log_and_outputs(small_ws, tmp_path):
     for key in ("seconds", "loss", "psnr", "rgb", "freespace", "occupancy", "carve", "rays_per_s"):
         assert key in lines[-1]
     assert (tmp_path / "preview_000002.png").exists() and (tmp_path / "preview_final.png").exists()
-    model, scale = load_model(tmp_path / "final.pt", torch.device("cpu"))
+    model, scale, _ = load_model(tmp_path / "final.pt", torch.device("cpu"))
     p = torch.zeros(4, 3)
     assert torch.allclose(model.occupancy(p), t.model.occupancy(p))
 
@@ -98,13 +98,11 @@ def test_fitted_frame_is_saved_and_consistent(small_ws, tmp_path):
     import numpy as np
     import trimesh
 
-    from dvr.trainer import load_frame
 
     cfg = tiny_cfg(iterations=2)
     data = load_scene(small_ws, torch.device("cpu"))
     t = train(cfg, data, tmp_path)
-    frame = load_frame(tmp_path / "final.pt")
-    _, scale = load_model(tmp_path / "final.pt", torch.device("cpu"))
+    _, scale, frame = load_model(tmp_path / "final.pt", torch.device("cpu"))
     assert frame[0, 0] < 0.95  # the torus (radius 0.7) does not fill the unit sphere: a tighter frame
     assert np.allclose(scale, data.cams.scale_mat @ frame)
     assert np.allclose(t.data.cams.P[0] / np.linalg.norm(t.data.cams.P[0]),

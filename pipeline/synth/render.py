@@ -26,6 +26,7 @@ from skimage import measure
 
 from dvr.cameras import save_cameras, sphere_bounds
 
+from ..raycast import mesh_intersector
 from .scene import Scene, Shape
 
 
@@ -82,13 +83,7 @@ class MeshShape:
         gt = trimesh.Trimesh(m.vertices.copy(), m.faces.copy(), process=True)
         gt.merge_vertices(merge_tex=True, merge_norm=True)
         self.gt = gt
-        self.intersector = trimesh.ray.ray_triangle.RayMeshIntersector(m)
-        try:
-            from trimesh.ray import ray_pyembree
-
-            self.intersector = ray_pyembree.RayMeshIntersector(m)
-        except Exception:  # noqa: BLE001 - Embree is optional
-            pass
+        self.intersector = mesh_intersector(m)
 
     def cast(self, o: np.ndarray, d: np.ndarray):
         """First hits: (hit mask, depth, point, normal, uv or None)."""
