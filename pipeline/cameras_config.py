@@ -30,8 +30,9 @@ class CamerasConfig:
     """SIFT features per image."""
     min_registered_fraction: float = 0.5
     """Fail when fewer images than this fraction register (the list of unregistered images is printed)."""
-    radius_margin: float = 1.1
-    """Unit sphere radius = margin × robust object radius from the sparse points."""
+    radius_margin: float = 1.3
+    """Unit sphere radius = margin × robust object radius from the sparse points (the points sample the object
+    sparsely: at 1.1 the corners of a plate and the cow's hooves fell outside, and masks and hull cut them)."""
     min_track_length: int = 3
     """Sparse points used for normalisation need at least this many observations."""
 
@@ -54,6 +55,15 @@ class MasksConfig:
     """Half-width of the uncertain band around the hull silhouette in the refinement pass."""
     user_threshold: int = 127
     """User masks: grey values above this are object."""
+    stereo: bool = True
+    """Seed GrabCut with plane-sweep stereo evidence: photo-consistent inside the object sphere → object,
+    beyond it → background (works where the object has the backdrop's colours)."""
+    stereo_scale: float = 0.5
+    """Image scale the plane sweep runs at (its labels are only seeds)."""
+    stereo_depths: int = 32
+    """Depth hypotheses of the plane sweep (uniform in inverse depth)."""
+    stereo_ratio: float = 0.5
+    """A pixel is labelled when its best cost on one side is below this fraction of the other side's."""
 
 
 @dataclass

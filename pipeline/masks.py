@@ -5,7 +5,10 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
 
 1. seeds from geometry: sparse SfM points inside the object's unit sphere are object, points the view
    observes far outside it are background (visibility from the COLMAP tracks in ``sfm/``), and everything
-   outside the projected unit sphere is background (the object lies inside it by construction);
+   outside the projected unit sphere is background (the object lies inside it by construction); plane-sweep
+   stereo (:mod:`pipeline.mask_stereo`) adds object seeds where a pixel is photo-consistent only at depths
+   inside the sphere and background seeds where only beyond it — what separates an object that has its
+   backdrop's colours (and seeds GrabCut when given cameras come without SfM tracks);
 2. GrabCut in every image, seeded by those;
 3. multi-view consistency, ``vote_rounds`` times: the visual hull of all masks, carving a point only when
    ≥ ``carve_min_views`` views see it as background, is re-projected into every view as an upper bound, and
@@ -30,6 +33,7 @@ from dvr.data import list_images
 from dvr.hull import hull_logits
 
 from .cameras_config import MasksConfig
+from .mask_stereo import BACKGROUND, OBJECT, stereo_seed_labels
 from .config import config_hash
 from .raycast import mesh_intersector, pixel_center_rays
 from .workspace import StageError, Workspace
@@ -161,6 +165,20 @@ def hull_silhouettes(P: torch.Tensor, masks: torch.Tensor, cams, res: int, min_v
     return out
 
 
+def background_depths(cams, pts_n: np.ndarray | None, obs: dict | None, names: list[str]) -> np.ndarray:
+    """Per view, the ray depth the stereo sweep reaches: 1.1 × the 95th percentile of the distances to the
+    background points (beyond radius 1.2) the view observes; 3 × the distance to the sphere centre without."""
+    far = 3.0 * np.linalg.norm(cams.centers, axis=1)
+    if pts_n is None or obs is None:
+        return far
+    for i, n in enumerate(names):
+        p = pts_n[obs.get(n, [])]
+        bg = p[np.linalg.norm(p, axis=1) > 1.2]
+        if len(bg) >= 10:
+            far[i] = 1.1 * np.percentile(np.linalg.norm(bg - cams.centers[i], axis=1), 95)
+    return far
+
+
 def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> dict:
     cams = load_cameras(ws.cameras, n_views=len(names))
     Pn = cams.P
@@ -169,10 +187,18 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     if xyz is not None and len(xyz):
         S = cams.scale_mat
         pts_n = (xyz - S[:3, 3]) / S[0, 0]
+    stereo = None
+    if cfg.stereo and len(names) >= 3:
+        stereo = stereo_seed_labels(imgs, cams, background_depths(cams, pts_n, obs, names), cfg.stereo_scale,
+                                    cfg.stereo_depths, cfg.stereo_ratio)
     first, seeds = [], []
     for i, (n, img) in enumerate(zip(names, imgs)):
         h, w = img.shape[:2]
         lab = seed_labels(Pn[i], h, w, pts_n, obs.get(n) if obs else None, cfg.seed_radius)
+        if stereo is not None:
+            inside = lab != cv2.GC_BGD  # the projected sphere
+            lab[inside & (stereo[i] == OBJECT)] = cv2.GC_FGD
+            lab[inside & (stereo[i] == BACKGROUND)] = cv2.GC_BGD
         seeds.append(lab)
         first.append(grabcut(img, lab, cfg.grabcut_iters))
     k = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)

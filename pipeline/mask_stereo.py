@@ -1,0 +1,126 @@
+"""Object/background evidence from multi-view stereo, for the automatic masks.
+
+Colour models fail where the object has the backdrop's colours (dark hooves on a dark-speckled backdrop, a plate
+printed like the wall behind it). Depth does not: an object pixel is photo-consistent with the neighbouring views
+at some depth inside the object's unit sphere, a backdrop pixel at some depth beyond it.
+
+For every view a plane sweep in inverse depth runs from the unit sphere's nearest point to the farthest
+background point SfM saw; each hypothesis is scored by the colour difference (5×5 box-filtered L1) with its
+``n_neighbors`` nearest views, keeping the mean of the best half (a point hidden in one neighbour must not count
+against it). ``c_in`` is the best score among hypotheses inside the sphere, ``c_out`` among those beyond it.
+Where one is clearly lower the pixel is labelled; textureless pixels (both low) and pixels seen by no neighbour
+stay undecided for GrabCut.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from dvr.cameras import Cameras, sphere_bounds
+
+UNDECIDED, OBJECT, BACKGROUND = 0, 1, 2
+
+
+def neighbours(centers: np.ndarray, k: int) -> np.ndarray:
+    """Indices (N, k) of each camera's ``k`` nearest other cameras (by the angle seen from the sphere centre)."""
+    u = centers / np.linalg.norm(centers, axis=1, keepdims=True).clip(1e-12)
+    cos = u @ u.T
+    np.fill_diagonal(cos, -np.inf)
+    return np.argsort(-cos, axis=1)[:, : min(k, len(centers) - 1)]
+
+
+@torch.no_grad()
+def stereo_costs(images: torch.Tensor, cams: Cameras, far: np.ndarray, n_depths: int = 48, n_neighbors: int = 4,
+                 patch: int = 5, outside: float = 1.2) -> tuple[torch.Tensor, torch.Tensor]:
+    """Best matching cost inside (``c_in``) and beyond (``c_out``) the unit sphere for every pixel, (N, H, W) each
+    (inf where no hypothesis of that kind could be scored).
+
+    Args:
+        images: (N, H, W, 3) float in [0, 1], in the views' order of ``cams`` (normalized frame).
+        far: (N,) farthest ray depth to sweep to per view (e.g. the 95th percentile of its background points).
+        outside: hypotheses count as background beyond this radius (the unit sphere is fitted to the object, which
+            may touch it: a band between the two is neither).
+    """
+    N, H, W, _ = images.shape
+    if len(cams) != N or far.shape != (N,):
+        raise ValueError(f"{N} images, {len(cams)} cameras and {far.shape} far depths must agree")
+    if N < 2:
+        raise ValueError("stereo needs at least 2 views")
+    dev = images.device
+    imgs = images.permute(0, 3, 1, 2).contiguous()  # (N, 3, H, W)
+    nb = neighbours(cams.centers, n_neighbors)
+    K = torch.from_numpy(cams.K).to(dev, torch.float32)
+    R = torch.from_numpy(cams.R).to(dev, torch.float32)
+    t = torch.from_numpy(cams.t).to(dev, torch.float32)
+    C = torch.from_numpy(cams.centers).to(dev, torch.float32)
+    jj, ii = torch.meshgrid(torch.arange(W, device=dev) + 0.5, torch.arange(H, device=dev) + 0.5, indexing="xy")
+    pix = torch.stack([jj, ii, torch.ones_like(jj)], -1).view(-1, 3)
+    c_in = torch.full((N, H, W), float("inf"), device=dev)
+    c_out = torch.full((N, H, W), float("inf"), device=dev)
+    for i in range(N):
+        d = pix @ torch.linalg.inv(K[i]).T @ R[i]
+        d = d / d.norm(dim=-1, keepdim=True)
+        o = C[i].expand_as(d)
+        near_s, far_s, hit = sphere_bounds(o, d)
+        z_near = float(near_s[hit].min()) if hit.any() else 0.05
+        z_far = max(float(far[i]), float(far_s.max()) * 1.05)
+        inv = torch.linspace(1.0 / max(z_near, 1e-3), 1.0 / z_far, n_depths, device=dev)
+        ref = imgs[i]
+        for z in 1.0 / inv:
+            X = o + z * d  # (HW, 3)
+            r = X.norm(dim=-1).view(H, W)
+            inside, beyond = r < 1.0, r > outside
+            costs = []
+            for k in nb[i]:
+                x = X @ R[k].T + t[k]
+                zc = x[:, 2:].clamp_min(1e-6)
+                uv = (x @ K[k].T)[:, :2] / zc
+                grid = torch.stack([uv[:, 0] / W * 2 - 1, uv[:, 1] / H * 2 - 1], -1).view(1, H, W, 2)
+                warped = F.grid_sample(imgs[k : k + 1], grid, align_corners=False, padding_mode="zeros")[0]
+                ok = ((grid.abs() <= 1).all(-1)[0] & (x[:, 2] > 1e-6).view(H, W)).float()
+                diff = (warped - ref).abs().mean(0)
+                num = F.avg_pool2d((diff * ok)[None, None], patch, 1, patch // 2, count_include_pad=False)[0, 0]
+                den = F.avg_pool2d(ok[None, None], patch, 1, patch // 2, count_include_pad=False)[0, 0]
+                costs.append(torch.where(den > 0.99, num / den.clamp_min(1e-6), torch.full_like(num, float("inf"))))
+            cs = torch.stack(costs).sort(dim=0).values
+            best = cs[: max(1, cs.shape[0] // 2)].mean(0)  # inf when fewer than half the neighbours see it
+            c_in[i] = torch.where(inside, torch.minimum(c_in[i], best), c_in[i])
+            c_out[i] = torch.where(beyond, torch.minimum(c_out[i], best), c_out[i])
+    return c_in, c_out
+
+
+def stereo_labels(c_in: torch.Tensor, c_out: torch.Tensor, ratio: float = 0.5, min_cost: float = 0.03,
+                  erode_px: int = 2) -> np.ndarray:
+    """OBJECT where c_in < ratio·c_out and c_out > min_cost (the background hypothesis really fails),
+    BACKGROUND where c_out < ratio·c_in and c_in > min_cost, else UNDECIDED; (N, H, W) uint8. Each label is
+    eroded by ``erode_px`` (the matching window straddles silhouettes; specks are not evidence)."""
+    both = torch.isfinite(c_in) & torch.isfinite(c_out)  # a side no neighbour could score proves nothing
+    obj = (both & (c_in < ratio * c_out) & (c_out > min_cost)).cpu().numpy().astype(np.uint8)
+    bg = (both & (c_out < ratio * c_in) & (c_in > min_cost)).cpu().numpy().astype(np.uint8)
+    lab = np.full(obj.shape, UNDECIDED, np.uint8)
+    k = np.ones((2 * erode_px + 1,) * 2, np.uint8)
+    for i in range(len(lab)):
+        lab[i][cv2.erode(obj[i], k) > 0] = OBJECT
+        lab[i][cv2.erode(bg[i], k) > 0] = BACKGROUND
+    return lab
+
+
+def stereo_seed_labels(images: list[np.ndarray], cams: Cameras, far: np.ndarray, scale: float = 0.5,
+                       n_depths: int = 32, ratio: float = 0.5, device: str | torch.device = "cpu",
+                       outside: float = 1.2) -> np.ndarray:
+    """:func:`stereo_labels` of BGR uint8 ``images`` computed at ``scale`` × their size and brought back to it
+    (nearest), (N, H, W) uint8."""
+    H, W = images[0].shape[:2]
+    h, w = max(8, round(H * scale)), max(8, round(W * scale))
+    small = np.stack([cv2.resize(cv2.cvtColor(im, cv2.COLOR_BGR2RGB), (w, h), interpolation=cv2.INTER_AREA)
+                      for im in images]).astype(np.float32) / 255.0
+    K = cams.K.copy()
+    K[:, 0] *= w / W
+    K[:, 1] *= h / H
+    sc = Cameras(K, cams.R, cams.t, cams.scale_mat)
+    c_in, c_out = stereo_costs(torch.from_numpy(small).to(device), sc, far, n_depths=n_depths, outside=outside)
+    lab = stereo_labels(c_in, c_out, ratio, erode_px=1)
+    return np.stack([cv2.resize(x, (W, H), interpolation=cv2.INTER_NEAREST) for x in lab])

@@ -1,0 +1,103 @@
+"""pipeline.mask_stereo: plane-sweep object/background evidence for the automatic masks (smoke, bad input,
+shapes, the guard, and the case it exists for: an object printed like its backdrop)."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from dvr.cameras import Cameras, load_cameras
+from dvr.data import list_images
+from pipeline.cli import main
+from pipeline.mask_stereo import BACKGROUND, OBJECT, UNDECIDED, neighbours, stereo_costs, stereo_labels, \
+    stereo_seed_labels
+from pipeline.masks import background_depths
+from pipeline.synth import scene_from_dict, write_scene
+from tests.conftest import ROOT
+
+# a plate on a ball, both with the backdrop's own noise texture: colour cannot tell them apart, depth can
+CAMO = {"name": "camouflage",
+        "shape": {"kind": "union", "parts": [{"kind": "sphere", "radius": 0.35, "center": [0.0, 0.0, -0.2]},
+                                             {"kind": "box", "size": [0.6, 0.02, 0.35], "center": [0.0, 0.0, 0.3]}]},
+        "albedo": {"kind": "noise", "scale": 2.0},
+        "background": {"kind": "backdrop", "radius": 3.5, "scale": 3.0, "saturation": 0.6},
+        "lighting": {"kind": "lambertian"},
+        "cameras": {"n_views": 16, "width": 200, "height": 150, "radius": 2.6, "fov_deg": 45, "elevation": [10, 40],
+                    "rings": 2}}
+
+
+@pytest.fixture(scope="module")
+def camo(tmp_path_factory):
+    syn = tmp_path_factory.mktemp("camo") / "synthetic"
+    write_scene(scene_from_dict(CAMO, ROOT), syn)
+    names = [p.stem for p in list_images(syn / "images")]
+    imgs = [cv2.imread(str(syn / "images" / f"{n}.png")) for n in names]
+    gt = np.stack([cv2.imread(str(syn / "masks" / f"{n}.png"), 0) > 127 for n in names])
+    return syn, load_cameras(syn / "cameras.npz"), imgs, gt
+
+
+def test_labels_agree_with_ground_truth(camo):
+    _, cams, imgs, gt = camo
+    lab = stereo_seed_labels(imgs, cams, background_depths(cams, None, None, [""] * len(imgs)))
+    assert lab.shape == gt.shape and lab.dtype == np.uint8
+    obj, bg = lab == OBJECT, lab == BACKGROUND
+    assert (obj & gt).sum() / obj.sum() >= 0.98  # object labels lie on the object
+    assert (bg & ~gt).sum() / bg.sum() >= 0.98  # background labels on the background
+    assert (obj & gt).sum() / gt.sum() >= 0.3  # and they cover a good part of it
+
+
+def test_masks_stage_separates_object_printed_like_its_backdrop(camo, tmp_path):
+    syn, _, _, gt = camo
+
+    def iou(ws):
+        m = np.stack([cv2.imread(str(p), 0) > 127 for p in sorted((ws / "masks").glob("*.png"))])
+        return ((m & gt).sum((1, 2)) / (m | gt).sum((1, 2))).mean()
+
+    ious = {}
+    for stereo in ("--masks-cfg.stereo", "--masks-cfg.no-stereo"):
+        ws = tmp_path / stereo
+        assert main(["cameras", str(ws), "--images", str(syn / "images"), "--cameras", str(syn / "cameras.npz")]) == 0
+        assert main(["masks", str(ws), stereo]) == 0
+        ious[stereo] = iou(ws)
+    print(ious)
+    assert ious["--masks-cfg.stereo"] >= 0.95
+    assert ious["--masks-cfg.no-stereo"] < ious["--masks-cfg.stereo"] - 0.05  # the stereo seeds make the difference
+
+
+def test_costs_shapes_and_smoke():
+    cams = _ring(4)
+    imgs = torch.rand(4, 12, 16, 3)
+    c_in, c_out = stereo_costs(imgs, cams, np.full(4, 6.0), n_depths=8, n_neighbors=2)
+    assert c_in.shape == c_out.shape == (4, 12, 16)
+    assert not torch.isnan(c_in).any() and not torch.isnan(c_out).any()
+    assert neighbours(cams.centers, 2).shape == (4, 2)
+
+
+def test_bad_input():
+    cams = _ring(4)
+    with pytest.raises(ValueError, match="must agree"):
+        stereo_costs(torch.rand(3, 8, 8, 3), cams, np.full(4, 6.0))
+    with pytest.raises(ValueError, match="must agree"):
+        stereo_costs(torch.rand(4, 8, 8, 3), cams, np.full(3, 6.0))
+    with pytest.raises(ValueError, match="at least 2"):
+        stereo_costs(torch.rand(1, 8, 8, 3), _ring(1), np.full(1, 6.0))
+
+
+def test_unscored_side_decides_nothing():
+    """Guard: where no neighbour sees a hypothesis (cost inf) the other side's low cost is no evidence."""
+    c_in = torch.tensor([[[0.01, 0.01, 0.2, 0.01]]]).expand(1, 5, 4).contiguous()
+    c_out = torch.tensor([[[float("inf"), 0.2, 0.01, 0.011]]]).expand(1, 5, 4).contiguous()
+    lab = stereo_labels(c_in, c_out, erode_px=0)[0, 0]
+    assert lab.tolist() == [UNDECIDED, OBJECT, BACKGROUND, UNDECIDED]
+
+
+def _ring(n):
+    K, R, t = [], [], []
+    for a in np.linspace(0, 2 * np.pi, n, endpoint=False):
+        c = np.array([3 * np.cos(a), 0.5, 3 * np.sin(a)])
+        z = -c / np.linalg.norm(c)
+        x = np.cross([0, 1, 0], z)
+        x /= np.linalg.norm(x)
+        Rm = np.stack([x, np.cross(z, x), z])
+        K.append([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]]), R.append(Rm), t.append(-Rm @ c)
+    return Cameras(np.array(K), np.array(R), np.array(t), np.eye(4))
