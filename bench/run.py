@@ -327,6 +327,11 @@ def _fmt(v, f):
     return "–" if v is None else f.format(v)
 
 
+def _gt_focal(r: dict) -> str:
+    """SfM runs: the held-out PSNR with the GT focal length instead of SfM's, in brackets."""
+    return f" ({r['psnr_gt_focal']:.1f} at GT focal)" if r.get("psnr_gt_focal") is not None else ""
+
+
 def table(results: list[dict], mach: dict) -> str:
     lines = [f"Machine: {mach.get('model')}, {mach.get('cores')} cores, {mach.get('torch_threads')} torch threads"
              f"{', GPU ' + mach['gpu'] if 'gpu' in mach else ', no GPU'}.", "",
@@ -347,7 +352,7 @@ def table(results: list[dict], mach: dict) -> str:
             f"| {r['scene']} | {'GT' if r['cameras'] == 'gt' else 'COLMAP'} | {label(r)} | {r['total_s']:.0f} | "
             f"{s.get('cameras', 0) + s.get('masks', 0) + s.get('depth', 0):.0f} | {s.get('train', 0):.0f} | "
             f"{s.get('mesh', 0) + s.get('texture', 0):.0f} | {_fmt(ch, '{:.2f}')} | {_fmt(r['fscore'], '{:.3f}')} | "
-            f"{r['psnr']:.1f} | {pe} | {r['peak_rss_gb']:.2f} |")
+            f"{r['psnr']:.1f}{_gt_focal(r)} | {pe} | {r['peak_rss_gb']:.2f} |")
     return "\n".join(lines)
 
 

@@ -160,7 +160,7 @@ class Trainer:
     def __init__(self, cfg: TrainConfig, data: SceneData, out_dir: Path):
         self.cfg = cfg
         if cfg.fit_frame:
-            sphere = hull_bounding_sphere(data.P, data.masks, 64, cfg.carve_min_views, cfg.frame_margin)
+            sphere = hull_bounding_sphere(data.P, data.masks, cfg.hull_res, cfg.carve_min_views, cfg.frame_margin)
             if sphere is not None:
                 data = data.reframe(*sphere)
         self.data = data
