@@ -19,9 +19,11 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -112,11 +114,18 @@ def grabcut(img: np.ndarray, init: np.ndarray, iters: int) -> np.ndarray:
         return np.isin(init, (cv2.GC_FGD, cv2.GC_PR_FGD))
     m = init.copy()
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.setRNGSeed(0)  # GrabCut's k-means draws from this thread's RNG: same mask whatever thread runs it
     try:
         cv2.grabCut(img, m, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK)
     except cv2.error:
         return np.isin(init, (cv2.GC_FGD, cv2.GC_PR_FGD))
     return np.isin(m, (cv2.GC_FGD, cv2.GC_PR_FGD))
+
+
+def grabcut_all(imgs: list[np.ndarray], labels: list[np.ndarray], iters: int) -> list[np.ndarray]:
+    """:func:`grabcut` of every image, on all CPU cores (OpenCV releases the GIL; results keep their order)."""
+    with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
+        return list(pool.map(lambda a: grabcut(a[0], a[1], iters), zip(imgs, labels)))
 
 
 def seed_labels(P: np.ndarray, h: int, w: int, pts_n: np.ndarray | None, vis: list[int] | None,
@@ -191,7 +200,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     if cfg.stereo and len(names) >= 3:
         stereo = stereo_seed_labels(imgs, cams, background_depths(cams, pts_n, obs, names), cfg.stereo_scale,
                                     cfg.stereo_depths, cfg.stereo_ratio)
-    first, seeds = [], []
+    seeds = []
     for i, (n, img) in enumerate(zip(names, imgs)):
         h, w = img.shape[:2]
         lab = seed_labels(Pn[i], h, w, pts_n, obs.get(n) if obs else None, cfg.seed_radius)
@@ -200,7 +209,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
             lab[inside & (stereo[i] == OBJECT)] = cv2.GC_FGD
             lab[inside & (stereo[i] == BACKGROUND)] = cv2.GC_BGD
         seeds.append(lab)
-        first.append(grabcut(img, lab, cfg.grabcut_iters))
+    first = grabcut_all(imgs, seeds, cfg.grabcut_iters)
     k = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
     Pt = torch.from_numpy(Pn).float()
     current = first
@@ -208,7 +217,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
         # vote: the hull of the current masks (carving needs carve_min_views) is an upper bound in every view
         sil = hull_silhouettes(Pt, torch.from_numpy(np.stack(current).astype(np.float32)), cams, cfg.hull_res,
                                cfg.carve_min_views)
-        refined = []
+        labs = []
         for i, img in enumerate(imgs):
             # outside the silhouette: background; inside, the point seeds stay hard and GrabCut decides the
             # rest (e.g. a hole the hull could not carve yet)
@@ -218,8 +227,8 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
             lab[s > 0] = cv2.GC_PR_FGD
             hard = (seeds[i] == cv2.GC_FGD) | ((seeds[i] == cv2.GC_BGD) & (cv2.dilate(s, k) > 0))
             lab[hard] = seeds[i][hard]
-            refined.append(grabcut(img, lab, cfg.grabcut_iters))
-        current = refined
+            labs.append(lab)
+        current = grabcut_all(imgs, labs, cfg.grabcut_iters)
     conf = {}
     for i, n in enumerate(names):
         cv2.imwrite(str(ws.masks / f"{n}.png"), current[i].astype(np.uint8) * 255)

@@ -101,3 +101,21 @@ def _ring(n):
         Rm = np.stack([x, np.cross(z, x), z])
         K.append([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]]), R.append(Rm), t.append(-Rm @ c)
     return Cameras(np.array(K), np.array(R), np.array(t), np.eye(4))
+
+
+def test_grabcut_on_all_cores_is_deterministic(camo):
+    """GrabCut's k-means draws from the calling thread's RNG: each call seeds it, so the pool's scheduling (and
+    the order of the views) cannot change a mask."""
+    from pipeline.masks import grabcut_all
+
+    _, _, imgs, gt = camo
+    labs = []
+    for g in gt:  # a loose band around the truth: GrabCut must decide it
+        lab = np.full(g.shape, cv2.GC_BGD, np.uint8)
+        lab[cv2.dilate(g.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0] = cv2.GC_PR_BGD
+        lab[g] = cv2.GC_PR_FGD
+        lab[cv2.erode(g.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0] = cv2.GC_FGD
+        labs.append(lab)
+    a = grabcut_all(imgs, labs, 3)
+    b = grabcut_all(imgs[::-1], labs[::-1], 3)[::-1]
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
