@@ -117,12 +117,6 @@ def _pairs(ov: list[str], prefix: str) -> list[str]:
     return out
 
 
-def _psnr(img, photo, m) -> float:
-    import numpy as np
-
-    return float(-10 * np.log10(max(((img - photo)[m] ** 2).mean(), 1e-10))) if m.any() else float("nan")
-
-
 def _textured(ws: Path):
     import numpy as np
     import trimesh
@@ -138,7 +132,7 @@ def run_synthetic(spec: dict, work: Path) -> dict:
     import trimesh
 
     from dvr.cameras import load_cameras
-    from dvr.metrics import chamfer_fscore, pose_errors, umeyama
+    from dvr.metrics import chamfer_fscore, masked_psnr, pose_errors, umeyama
     from pipeline.texture import render_textured
     from pipeline.workspace import Workspace
 
@@ -185,7 +179,7 @@ def run_synthetic(spec: dict, work: Path) -> dict:
         for K, out in Ks:
             img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, hc.R[i] @ R.T,
                                        s * R @ centres(hc)[i] + t, w, h)
-            out.append(_psnr(img, photo / 255.0, gm | hit))
+            out.append(masked_psnr(img, photo / 255.0, gm | hit))
     if psnr_gt_focal:
         extra["psnr_gt_focal"] = float(np.mean(psnr_gt_focal))
     secs = Workspace(ws).seconds()
@@ -213,7 +207,7 @@ def run_dtu(spec: dict, work: Path) -> dict:
     from bench.dtu_reference import dtu_reference
     from dvr.cameras import load_cameras
     from dvr.data import list_images
-    from dvr.metrics import pose_errors
+    from dvr.metrics import masked_psnr, pose_errors
     from pipeline.texture import render_textured
     from pipeline.workspace import Workspace
 
@@ -248,8 +242,8 @@ def run_dtu(spec: dict, work: Path) -> dict:
         h, w = photo.shape[:2]
         img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, cams.K[i], cams.R[i], c_sfm[i], w, h)
         mask = cv2.imread(str(full / "masks" / f"{names[i]}.png"), 0) > 127
-        psnr.append(_psnr(img, photo, mask | hit))
-        psnr_hit.append(_psnr(img, photo, hit))
+        psnr.append(masked_psnr(img, photo, mask | hit))
+        psnr_hit.append(masked_psnr(img, photo, hit))
         cover.append(float((mask & hit).sum() / max(1, mask.sum())))
     secs = {**shared_secs, **{k: v for k, v in Workspace(ws).seconds().items() if k not in shared_secs}}
     return {"seconds": secs, "chamfer_rel": None, "fscore": None, "psnr": float(np.mean(psnr)), "pose": pose,

@@ -1,10 +1,18 @@
-"""Geometry metrics against a ground-truth mesh: Chamfer distance and F-score."""
+"""Metrics: Chamfer distance and F-score against a ground-truth mesh, masked image PSNR."""
 
 from __future__ import annotations
 
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
+
+
+def masked_psnr(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR (dB) of ``img`` against ``ref`` (values in [0, 1]) over the pixels of ``mask``; NaN for an empty mask,
+    capped at 100 dB for identical images."""
+    if not mask.any():
+        return float("nan")
+    return float(-10 * np.log10(max(((img - ref)[mask] ** 2).mean(), 1e-10)))
 
 
 def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int = 0) -> np.ndarray:

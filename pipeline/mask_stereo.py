@@ -19,9 +19,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from dvr.cameras import Cameras, sphere_bounds
+from dvr.cameras import Cameras, pixel_rays, project, sphere_bounds
 
 UNDECIDED, OBJECT, BACKGROUND = 0, 1, 2
+BACKGROUND_RADIUS = 1.2
+"""Radius of the normalized frame beyond which a point is background (the unit sphere is fitted to the object,
+which may touch it; masks also take sparse points beyond it as background seeds)."""
 
 
 def neighbours(centers: np.ndarray, k: int) -> np.ndarray:
@@ -34,7 +37,7 @@ def neighbours(centers: np.ndarray, k: int) -> np.ndarray:
 
 @torch.no_grad()
 def stereo_costs(images: torch.Tensor, cams: Cameras, far: np.ndarray, n_depths: int = 48, n_neighbors: int = 4,
-                 patch: int = 5, outside: float = 1.2) -> tuple[torch.Tensor, torch.Tensor]:
+                 patch: int = 5, outside: float = BACKGROUND_RADIUS) -> tuple[torch.Tensor, torch.Tensor]:
     """Best matching cost inside (``c_in``) and beyond (``c_out``) the unit sphere for every pixel, (N, H, W) each
     (inf where no hypothesis of that kind could be scored).
 
@@ -52,18 +55,13 @@ def stereo_costs(images: torch.Tensor, cams: Cameras, far: np.ndarray, n_depths:
     dev = images.device
     imgs = images.permute(0, 3, 1, 2).contiguous()  # (N, 3, H, W)
     nb = neighbours(cams.centers, n_neighbors)
-    K = torch.from_numpy(cams.K).to(dev, torch.float32)
-    R = torch.from_numpy(cams.R).to(dev, torch.float32)
-    t = torch.from_numpy(cams.t).to(dev, torch.float32)
-    C = torch.from_numpy(cams.centers).to(dev, torch.float32)
+    K, R, t, P = (torch.from_numpy(a).to(dev, torch.float32) for a in (cams.K, cams.R, cams.t, cams.P))
     jj, ii = torch.meshgrid(torch.arange(W, device=dev) + 0.5, torch.arange(H, device=dev) + 0.5, indexing="xy")
-    pix = torch.stack([jj, ii, torch.ones_like(jj)], -1).view(-1, 3)
+    uv_ref = torch.stack([jj, ii], -1).view(-1, 2)
     c_in = torch.full((N, H, W), float("inf"), device=dev)
     c_out = torch.full((N, H, W), float("inf"), device=dev)
     for i in range(N):
-        d = pix @ torch.linalg.inv(K[i]).T @ R[i]
-        d = d / d.norm(dim=-1, keepdim=True)
-        o = C[i].expand_as(d)
+        o, d = pixel_rays(K[i], R[i], t[i], uv_ref)
         near_s, far_s, hit = sphere_bounds(o, d)
         z_near = float(near_s[hit].min()) if hit.any() else 0.05
         z_far = max(float(far[i]), float(far_s.max()) * 1.05)
@@ -74,13 +72,11 @@ def stereo_costs(images: torch.Tensor, cams: Cameras, far: np.ndarray, n_depths:
             r = X.norm(dim=-1).view(H, W)
             inside, beyond = r < 1.0, r > outside
             costs = []
-            for k in nb[i]:
-                x = X @ R[k].T + t[k]
-                zc = x[:, 2:].clamp_min(1e-6)
-                uv = (x @ K[k].T)[:, :2] / zc
+            uvs, zs = project(X, P[nb[i]])  # (k, HW, 2), (k, HW) in every neighbour
+            for k, uv, zk in zip(nb[i], uvs, zs):
                 grid = torch.stack([uv[:, 0] / W * 2 - 1, uv[:, 1] / H * 2 - 1], -1).view(1, H, W, 2)
                 warped = F.grid_sample(imgs[k : k + 1], grid, align_corners=False, padding_mode="zeros")[0]
-                ok = ((grid.abs() <= 1).all(-1)[0] & (x[:, 2] > 1e-6).view(H, W)).float()
+                ok = ((grid.abs() <= 1).all(-1)[0] & (zk > 1e-6).view(H, W)).float()
                 diff = (warped - ref).abs().mean(0)
                 num = F.avg_pool2d((diff * ok)[None, None], patch, 1, patch // 2, count_include_pad=False)[0, 0]
                 den = F.avg_pool2d(ok[None, None], patch, 1, patch // 2, count_include_pad=False)[0, 0]
@@ -110,7 +106,7 @@ def stereo_labels(c_in: torch.Tensor, c_out: torch.Tensor, ratio: float = 0.5, m
 
 def stereo_seed_labels(images: list[np.ndarray], cams: Cameras, far: np.ndarray, scale: float = 0.5,
                        n_depths: int = 32, ratio: float = 0.5, device: str | torch.device = "cpu",
-                       outside: float = 1.2) -> np.ndarray:
+                       outside: float = BACKGROUND_RADIUS) -> np.ndarray:
     """:func:`stereo_labels` of BGR uint8 ``images`` computed at ``scale`` × their size and brought back to it
     (nearest), (N, H, W) uint8."""
     H, W = images[0].shape[:2]

@@ -35,7 +35,7 @@ from dvr.data import list_images
 from dvr.hull import hull_logits
 
 from .cameras_config import MasksConfig
-from .mask_stereo import BACKGROUND, OBJECT, stereo_seed_labels
+from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
 from .config import config_hash
 from .raycast import mesh_intersector, pixel_center_rays
 from .workspace import StageError, Workspace
@@ -144,7 +144,7 @@ def seed_labels(P: np.ndarray, h: int, w: int, pts_n: np.ndarray | None, vis: li
             if 0 <= u < w and 0 <= v < h:
                 if rr < 0.9:
                     cv2.circle(lab, (int(u), int(v)), r, cv2.GC_FGD, -1)
-                elif rr > 1.2:
+                elif rr > BACKGROUND_RADIUS:
                     cv2.circle(lab, (int(u), int(v)), r, cv2.GC_BGD, -1)
     return lab
 
@@ -176,13 +176,13 @@ def hull_silhouettes(P: torch.Tensor, masks: torch.Tensor, cams, res: int, min_v
 
 def background_depths(cams, pts_n: np.ndarray | None, obs: dict | None, names: list[str]) -> np.ndarray:
     """Per view, the ray depth the stereo sweep reaches: 1.1 × the 95th percentile of the distances to the
-    background points (beyond radius 1.2) the view observes; 3 × the distance to the sphere centre without."""
+    background points (beyond ``BACKGROUND_RADIUS``) the view observes; 3 × the distance to the sphere centre without."""
     far = 3.0 * np.linalg.norm(cams.centers, axis=1)
     if pts_n is None or obs is None:
         return far
     for i, n in enumerate(names):
         p = pts_n[obs.get(n, [])]
-        bg = p[np.linalg.norm(p, axis=1) > 1.2]
+        bg = p[np.linalg.norm(p, axis=1) > BACKGROUND_RADIUS]
         if len(bg) >= 10:
             far[i] = 1.1 * np.percentile(np.linalg.norm(bg - cams.centers[i], axis=1), 95)
     return far

@@ -77,6 +77,7 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
 
     from dvr.cameras import load_cameras
     from dvr.data import list_images
+    from dvr.metrics import masked_psnr
 
     from .texture import render_textured
 
@@ -102,7 +103,7 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
             mp = mask_dir / f"{paths[i].stem}.png"
             m = cv2.imread(str(mp), 0) > 127 if mp.exists() else hit
             m = m | hit
-            p = float(-10 * np.log10(max(((img - photo)[m] ** 2).mean(), 1e-10))) if m.any() else float("nan")
+            p = masked_psnr(img, photo, m)
             pair = (np.concatenate([photo, img], 1) * 255).round().astype(np.uint8)
             if out_dir is not None:
                 cv2.imwrite(str(out_dir / f"render_{tag.replace('-', '')}_{paths[i].stem}.png"),
