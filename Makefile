@@ -3,7 +3,7 @@ PY      ?= .venv/bin/python
 IMAGES  ?=
 MASKS   ?=
 CONFIG  ?= configs/default.yaml
-OUT     ?= work/$(notdir $(abspath $(IMAGES)))
+OUT     ?=
 WS      ?= $(OUT)
 FORCE   ?=
 ARGS    ?=
@@ -34,28 +34,28 @@ test-fast: setup
 # synthetic scene: make synth SCENE=configs/scenes/torus.yaml OUT=work/torus
 SCENE ?= configs/scenes/torus.yaml
 synth: setup
-	$(PY) -m pipeline synth $(SCENE) $(OUT)
+	$(PY) -m pipeline synth "$(SCENE)" "$(OUT)"
 
 cameras: setup
-	$(PY) -m pipeline cameras $(WS) --images $(IMAGES) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+	$(PY) -m pipeline cameras "$(WS)" --images "$(IMAGES)" --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
 
 masks: setup
-	$(PY) -m pipeline masks $(WS) $(if $(MASKS),--masks $(MASKS)) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+	$(PY) -m pipeline masks "$(WS)" $(if $(MASKS),--masks "$(MASKS)") --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
 
 depth: setup
-	$(PY) -m pipeline depth $(WS) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+	$(PY) -m pipeline depth "$(WS)" --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
 
 train: setup
-	$(PY) -m pipeline train $(WS) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+	$(PY) -m pipeline train "$(WS)" --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
 
 mesh: setup
-	$(PY) -m pipeline mesh $(WS) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+	$(PY) -m pipeline mesh "$(WS)" --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
 
 texture: setup
-	$(PY) -m pipeline texture $(WS) --config $(CONFIG) $(if $(FORCE),--force) $(ARGS)
+	$(PY) -m pipeline texture "$(WS)" --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
 
 report: setup
-	$(PY) -m pipeline report $(WS)
+	$(PY) -m pipeline report "$(WS)"
 
 bench-core: setup
 	$(PY) bench/core.py
@@ -66,15 +66,20 @@ bench: setup
 bench-quick: setup
 	$(PY) bench/run.py --quick
 
-# every stage in order; each is skipped when up to date, and a killed run resumes where it stopped
+# every stage in order; each is skipped when up to date, and a killed run resumes where it stopped.
+# Paths may hold spaces (IMAGES="photos of my vase"): they are quoted, and the default OUT is work/<folder name>.
 reconstruct: setup
-	@if [ -z "$(IMAGES)" ] && [ ! -f "$(OUT)/cameras.npz" ]; then \
-	  echo "usage: make reconstruct IMAGES=photos [MASKS=dir] [OUT=workspace] [CONFIG=file]"; exit 2; fi
-	$(if $(IMAGES),$(PY) -m pipeline cameras $(OUT) --images $(IMAGES) --config $(CONFIG))
-	$(if $(or $(IMAGES),$(MASKS)),$(PY) -m pipeline masks $(OUT) $(if $(MASKS),--masks $(MASKS)) --config $(CONFIG))
-	$(if $(IMAGES),$(PY) -m pipeline depth $(OUT) --config $(CONFIG))
-	$(PY) -m pipeline train $(OUT) --config $(CONFIG)
-	$(PY) -m pipeline mesh $(OUT) --config $(CONFIG)
-	$(PY) -m pipeline texture $(OUT) --config $(CONFIG)
-	$(PY) -m pipeline report $(OUT)
-	@echo "done: $(OUT)/mesh/textured.glb  report: $(OUT)/report.html"
+	@images="$(IMAGES)"; out="$(OUT)"; masks="$(MASKS)"; \
+	if [ -z "$$out" ] && [ -n "$$images" ]; then out="work/$$(basename "$$images")"; fi; \
+	if [ -z "$$out" ] || { [ -z "$$images" ] && [ ! -f "$$out/cameras.npz" ]; }; then \
+	  echo "usage: make reconstruct IMAGES=photos [MASKS=dir] [OUT=workspace] [CONFIG=file]"; exit 2; fi; \
+	set -e; \
+	if [ -n "$$images" ]; then $(PY) -m pipeline cameras "$$out" --images "$$images" --config "$(CONFIG)"; fi; \
+	if [ -n "$$masks" ]; then $(PY) -m pipeline masks "$$out" --masks "$$masks" --config "$(CONFIG)"; \
+	elif [ -n "$$images" ]; then $(PY) -m pipeline masks "$$out" --config "$(CONFIG)"; fi; \
+	if [ -n "$$images" ]; then $(PY) -m pipeline depth "$$out" --config "$(CONFIG)"; fi; \
+	$(PY) -m pipeline train "$$out" --config "$(CONFIG)"; \
+	$(PY) -m pipeline mesh "$$out" --config "$(CONFIG)"; \
+	$(PY) -m pipeline texture "$$out" --config "$(CONFIG)"; \
+	$(PY) -m pipeline report "$$out"; \
+	echo "done: $$out/mesh/textured.glb  report: $$out/report.html"

@@ -25,6 +25,7 @@ class Cameras:
     R: np.ndarray  # (N, 3, 3) world(normalized) → camera rotation
     t: np.ndarray  # (N, 3) translation
     scale_mat: np.ndarray  # (4, 4) normalized → SfM frame
+    ground: np.ndarray | None = None  # (4,) support plane n·x + d = 0 in this frame (unit n up), or None
 
     def __len__(self) -> int:
         return len(self.K)
@@ -41,7 +42,7 @@ class Cameras:
         return self.K @ Rt
 
     def subset(self, idx) -> "Cameras":
-        return Cameras(self.K[idx], self.R[idx], self.t[idx], self.scale_mat)
+        return Cameras(self.K[idx], self.R[idx], self.t[idx], self.scale_mat, self.ground)
 
     def reframe(self, center: np.ndarray, radius: float) -> "Cameras":
         """The same cameras in a frame whose unit sphere is the sphere (``center``, ``radius``) of this frame:
@@ -49,7 +50,22 @@ class Cameras:
         if not (radius > 0 and np.isfinite(radius)):
             raise ValueError(f"reframe: radius must be positive and finite, got {radius}")
         t = (np.einsum("nij,j->ni", self.R, np.asarray(center, float)) + self.t) / radius
-        return Cameras(self.K.copy(), self.R.copy(), t, self.scale_mat @ sphere_frame(center, radius))
+        to_this = sphere_frame(center, radius)
+        return Cameras(self.K.copy(), self.R.copy(), t, self.scale_mat @ to_this, plane_in_frame(self.ground, to_this))
+
+
+def plane_in_frame(plane: np.ndarray | None, T: np.ndarray) -> np.ndarray | None:
+    """Plane (4,) n·x + d = 0 of frame A as a plane of frame B, where x_A = T x_B (4×4 similarity); unit normal."""
+    if plane is None:
+        return None
+    q = np.asarray(plane, float) @ T
+    return q / np.linalg.norm(q[:3])
+
+
+def plane_height(plane: np.ndarray, points):
+    """Signed height above a plane (4,) with unit normal of points (..., 3), numpy or torch."""
+    return points[..., 0] * float(plane[0]) + points[..., 1] * float(plane[1]) + points[..., 2] * float(plane[2]) \
+        + float(plane[3])
 
 
 def sphere_frame(center: np.ndarray, radius: float) -> np.ndarray:
@@ -107,6 +123,7 @@ def load_cameras(path: str | Path, n_views: int | None = None) -> Cameras:
     else:
         scale = np.eye(4)
     scale = np.asarray(scale, dtype=np.float64)
+    ground = plane_in_frame(np.asarray(data["ground_plane"], float), scale) if "ground_plane" in data.files else None
     Ks, Rs, ts = [], [], []
     for i in idx:
         W = np.asarray(data[f"world_mat_{i}"], dtype=np.float64)
@@ -115,12 +132,16 @@ def load_cameras(path: str | Path, n_views: int | None = None) -> Cameras:
         P = W[:3, :4] @ scale
         K, R, t = decompose_projection(P)
         Ks.append(K), Rs.append(R), ts.append(t)
-    return Cameras(np.stack(Ks), np.stack(Rs), np.stack(ts), scale)
+    return Cameras(np.stack(Ks), np.stack(Rs), np.stack(ts), scale, ground)
 
 
-def save_cameras(path: str | Path, K: np.ndarray, R: np.ndarray, t: np.ndarray, scale_mat: np.ndarray) -> None:
-    """Write ``cameras.npz``: K, R, t given in the SfM frame; ``scale_mat`` maps normalized → SfM."""
+def save_cameras(path: str | Path, K: np.ndarray, R: np.ndarray, t: np.ndarray, scale_mat: np.ndarray,
+                 ground: np.ndarray | None = None) -> None:
+    """Write ``cameras.npz``: K, R, t given in the SfM frame; ``scale_mat`` maps normalized → SfM; ``ground``: the
+    support plane (4,) n·x + d = 0 in the SfM frame (n up), stored as ``ground_plane`` when the object rests on one."""
     out = {"scale_mat": scale_mat}
+    if ground is not None:
+        out["ground_plane"] = np.asarray(ground, float)
     for i in range(len(K)):
         W = np.eye(4)
         W[:3, :4] = K[i] @ np.concatenate([R[i], t[i][:, None]], axis=1)

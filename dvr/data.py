@@ -42,12 +42,24 @@ def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
     return (m > 127).astype(np.float32)
 
 
+def pad_stack(arrays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Stack images of different sizes on a common canvas (top-left aligned, zero padding): (N, H, W, ...) and the
+    views' own (width, height), (N, 2). Pixel coordinates of a view are the same on the canvas."""
+    H = max(a.shape[0] for a in arrays)
+    W = max(a.shape[1] for a in arrays)
+    out = np.zeros((len(arrays), H, W, *arrays[0].shape[2:]), arrays[0].dtype)
+    for k, a in enumerate(arrays):
+        out[k, : a.shape[0], : a.shape[1]] = a
+    return out, np.array([(a.shape[1], a.shape[0]) for a in arrays], np.int64)
+
+
 @dataclass
 class SceneData:
-    """All views of a workspace on one device."""
+    """All views of a workspace on one device. Views may differ in size (a phone's portrait and landscape
+    photos): images and masks are padded to a common canvas and ``sizes`` holds each view's own (width, height)."""
 
-    images: torch.Tensor  # (N, H, W, 3)
-    masks: torch.Tensor  # (N, H, W) in {0, 1}
+    images: torch.Tensor  # (N, H, W, 3), padded
+    masks: torch.Tensor  # (N, H, W) in {0, 1}, padded with 0
     cams: Cameras
     Kinv: torch.Tensor  # (N, 3, 3)
     Rt: torch.Tensor  # (N, 3, 3) camera → world rotation (R^T)
@@ -58,6 +70,12 @@ class SceneData:
     depth_uv: torch.Tensor | None = None  # (K, 2)
     depth_val: torch.Tensor | None = None  # (K,)
     to_normalized: np.ndarray | None = None  # 4×4 map of this frame to the normalized frame of cameras.npz
+    sizes: torch.Tensor | None = None  # (N, 2) long: each view's (width, height); None: all fill the canvas
+
+    def __post_init__(self):
+        if self.sizes is None:
+            N, H, W = self.masks.shape
+            self.sizes = torch.tensor([[W, H]] * N, dtype=torch.long, device=self.masks.device)
 
     @property
     def frame(self) -> np.ndarray:
@@ -75,12 +93,18 @@ class SceneData:
             centers=torch.from_numpy(cams.centers).to(**f32), P=torch.from_numpy(cams.P).to(**f32), names=self.names,
             depth_views=self.depth_views, depth_uv=self.depth_uv,
             depth_val=None if self.depth_val is None else self.depth_val / radius,
-            to_normalized=self.frame @ sphere_frame(center, radius),
+            to_normalized=self.frame @ sphere_frame(center, radius), sizes=self.sizes,
         )
 
     @property
     def shape(self) -> tuple[int, int, int]:
+        """(views, canvas height, canvas width)."""
         return tuple(self.masks.shape)  # type: ignore[return-value]
+
+    def view_size(self, view: int) -> tuple[int, int]:
+        """(width, height) of one view."""
+        w, h = self.sizes[view].tolist()
+        return int(w), int(h)
 
     def rays(self, view: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays (origins, unit dirs) through continuous pixel coordinates uv (B, 2) of views (B,)."""
@@ -110,16 +134,16 @@ def load_scene(ws: Path, device: torch.device, use_depth: bool = True, views: li
         mp = mask_dir / f"{p.stem}.png"
         if not mp.exists():
             raise FileNotFoundError(f"{mp}: missing mask for {p.name}; run the masks stage")
-        if imgs and img.shape != imgs[0].shape:
-            raise ValueError(f"{p}: size {img.shape[1]}x{img.shape[0]} differs from the other images")
         imgs.append(img)
         masks.append(read_mask(mp, img.shape[:2]))
     f32 = dict(device=device, dtype=torch.float32)
     K = torch.from_numpy(cams.K)
     R = torch.from_numpy(cams.R)
+    images, sizes = pad_stack(imgs)
     data = SceneData(
-        images=torch.from_numpy(np.stack(imgs)).to(**f32),
-        masks=torch.from_numpy(np.stack(masks)).to(**f32),
+        images=torch.from_numpy(images).to(**f32),
+        masks=torch.from_numpy(pad_stack(masks)[0]).to(**f32),
+        sizes=torch.from_numpy(sizes).to(device),
         cams=cams,
         Kinv=torch.linalg.inv(K).to(**f32),
         Rt=R.transpose(1, 2).contiguous().to(**f32),
@@ -150,27 +174,44 @@ def load_scene(ws: Path, device: torch.device, use_depth: bool = True, views: li
 
 
 class RaySampler:
-    """Uniform pixel sampling plus oversampling of a band around mask boundaries."""
+    """Uniform pixel sampling (every pixel of every view equally likely, whatever the views' sizes) plus
+    oversampling of a band around mask boundaries."""
 
     def __init__(self, data: SceneData, boundary_fraction: float = 0.25, band_px: int | None = None,
                  generator: torch.Generator | None = None):
         self.data = data
         N, H, W = data.shape
-        self.n_pix = N * H * W
         self.boundary_fraction = boundary_fraction
         self.gen = generator
+        sizes = data.sizes.cpu()
+        self.widths = sizes[:, 0]
+        counts = sizes[:, 0] * sizes[:, 1]
+        self.starts = torch.cumsum(counts, 0) - counts  # first flat index of each view among the valid pixels
+        self.n_pix = int(counts.sum())
         band_px = band_px or max(2, round(0.02 * max(H, W)))
         k = np.ones((2 * band_px + 1, 2 * band_px + 1), np.uint8)
         band = []
-        for m in data.masks.cpu().numpy().astype(np.uint8):
-            band.append(cv2.dilate(m, k) != cv2.erode(m, k))
+        for m, (w, h) in zip(data.masks.cpu().numpy().astype(np.uint8), sizes.tolist()):
+            b = np.zeros_like(m, bool)
+            own = m[:h, :w]
+            b[:h, :w] = cv2.dilate(own, k) != cv2.erode(own, k)
+            band.append(b)
         idx = np.flatnonzero(np.stack(band))
         self.band = torch.from_numpy(idx).to(data.masks.device)
+
+    def uniform(self, n: int) -> torch.Tensor:
+        """``n`` flat canvas indices (into (N, H, W)) of pixels drawn uniformly from the views' own pixels."""
+        _, H, W = self.data.shape
+        u = torch.randint(0, self.n_pix, (n,), generator=self.gen, device="cpu")
+        view = torch.searchsorted(self.starts, u, right=True) - 1
+        rem = u - self.starts[view]
+        w = self.widths[view]
+        return (view * (H * W) + (rem // w) * W + rem % w).to(self.data.masks.device)
 
     def sample(self, n: int):
         dev = self.data.masks.device
         nb = int(round(n * self.boundary_fraction)) if self.band.numel() > 0 else 0
-        u = torch.randint(0, self.n_pix, (n - nb,), generator=self.gen, device="cpu").to(dev)
+        u = self.uniform(n - nb)
         if nb:
             b = self.band[torch.randint(0, self.band.numel(), (nb,), generator=self.gen, device="cpu").to(dev)]
             u = torch.cat([u, b])

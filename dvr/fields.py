@@ -48,6 +48,30 @@ class FieldConfig:
     """|logit| bound of the initial dense grid (hull prior)."""
 
 
+SUPPORT_SLOPE = 500.0
+"""Logit per unit of depth below the support plane: one grid cell (2/96) below it the logit is −10."""
+
+
+class SupportClip:
+    """Occupancy clipped to the half-space above a support plane: min(f(p), slope · height(p)).
+
+    Nothing below the floor or table an object stands on can be occupied, and where the object touches it the
+    level set is the plane itself: the extracted mesh is closed by a flat cap. Mixed into both fields."""
+
+    support: torch.Tensor | None = None
+
+    def set_support(self, plane) -> None:
+        """Clip to the plane (4,) n·x + d = 0 of the field's frame (unit n pointing up); None removes the clip."""
+        self.support = None if plane is None else torch.as_tensor(plane, dtype=torch.float32).clone()
+
+    def clip_to_support(self, p: torch.Tensor, logit: torch.Tensor) -> torch.Tensor:
+        if self.support is None:
+            return logit
+        pl = self.support.to(device=p.device, dtype=logit.dtype)
+        h = p.to(logit.dtype) @ pl[:3] + pl[3]
+        return torch.minimum(logit, SUPPORT_SLOPE * h)
+
+
 class TriPlane(nn.Module):
     """Multi-resolution tri-plane features: concat over levels, sum over the xy/xz/yz planes."""
 
@@ -82,7 +106,7 @@ def _mlp(inp: int, hidden: int, out: int, layers: int, zero_last: bool = False) 
     return nn.Sequential(*mods)
 
 
-class GridField(nn.Module):
+class GridField(SupportClip, nn.Module):
     """Dense logit grid (+ hull prior) + tri-plane residual; tri-plane texture."""
 
     def __init__(self, cfg: FieldConfig):
@@ -121,10 +145,11 @@ class GridField(nn.Module):
         return F.grid_sample(self.base, g, mode="bilinear", padding_mode="border", align_corners=True).view(-1)
 
     def occupancy(self, p: torch.Tensor) -> torch.Tensor:
-        """Occupancy logit at points p (M, 3) → (M,)."""
-        if self.occ_planes is None:
-            return self.base_logit(p)
-        return self.base_logit(p) + self.occ_head(self.occ_planes(p)).view(-1)
+        """Occupancy logit at points p (M, 3) → (M,) (clipped to the support plane when there is one)."""
+        logit = self.base_logit(p)
+        if self.occ_planes is not None:
+            logit = logit + self.occ_head(self.occ_planes(p)).view(-1)
+        return self.clip_to_support(p, logit)
 
     def texture(self, p: torch.Tensor) -> torch.Tensor:
         """RGB in [0, 1] at points p (M, 3) → (M, 3)."""
@@ -150,7 +175,7 @@ class GridField(nn.Module):
         return tv
 
 
-class FourierMLPField(nn.Module):
+class FourierMLPField(SupportClip, nn.Module):
     """Reference: plain MLPs on Fourier-encoded xyz (occupancy + texture)."""
 
     def __init__(self, cfg: FieldConfig):
@@ -170,7 +195,7 @@ class FourierMLPField(nn.Module):
 
     def occupancy(self, p: torch.Tensor) -> torch.Tensor:
         sphere = 10.0 * (self.prior_radius - p.norm(dim=-1))
-        return self.occ(self._enc(p)).view(-1) + sphere.to(self.freqs.dtype)
+        return self.clip_to_support(p, self.occ(self._enc(p)).view(-1) + sphere.to(self.freqs.dtype))
 
     def texture(self, p: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(self.tex(self._enc(p)))

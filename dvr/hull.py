@@ -12,18 +12,22 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from .cameras import project
+from .cameras import plane_height, project
 
 
-def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor):
+def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, sizes: torch.Tensor | None = None):
     """Mask value of every point in every view: (N, M) values in [0, 1] and (N, M) 'seen' flags.
 
     ``masks`` is (N, H, W) float; a point is seen by a view when it is in front of the camera and projects
-    inside the image. Bilinear lookup with pixel centres at +0.5 (``align_corners=False``).
+    inside the image — inside its own (width, height) of ``sizes`` (N, 2) when the views differ in size and the
+    masks are padded to a common canvas (top-left aligned). Bilinear lookup with pixel centres at +0.5
+    (``align_corners=False``).
     """
     N, H, W = masks.shape
     uv, z = project(points.to(P.dtype), P)
-    seen = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= W) & (uv[..., 1] >= 0) & (uv[..., 1] <= H)
+    w_v = torch.full((N, 1), float(W), device=P.device) if sizes is None else sizes[:, :1].to(uv.dtype)
+    h_v = torch.full((N, 1), float(H), device=P.device) if sizes is None else sizes[:, 1:].to(uv.dtype)
+    seen = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= w_v) & (uv[..., 1] >= 0) & (uv[..., 1] <= h_v)
     g = torch.stack([uv[..., 0] / W * 2 - 1, uv[..., 1] / H * 2 - 1], dim=-1).to(masks.dtype)
     g = torch.nan_to_num(g, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2, 2)
     vals = F.grid_sample(masks[:, None], g[:, :, None, :], mode="bilinear", align_corners=False, padding_mode="zeros")
@@ -31,13 +35,18 @@ def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor):
 
 
 def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min_views: int = 1,
-                 chunk: int = 65536) -> torch.Tensor:
-    """True for points that ≥ ``min_views`` views see outside their mask, or that no view sees."""
+                 chunk: int = 65536, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None) -> torch.Tensor:
+    """True for points that ≥ ``min_views`` views see outside their mask, that no view sees, or that lie below
+    the support plane ``ground`` (4,) when the object stands on one. ``sizes``: see :func:`mask_lookup`."""
     out = []
     for s in range(0, points.shape[0], chunk):
-        vals, seen = mask_lookup(points[s : s + chunk], P, masks)
+        p = points[s : s + chunk]
+        vals, seen = mask_lookup(p, P, masks, sizes)
         n_out = ((vals < 0.5) & seen).sum(0)
-        out.append((n_out >= min_views) | (seen.sum(0) == 0))
+        free = (n_out >= min_views) | (seen.sum(0) == 0)
+        if ground is not None:
+            free |= plane_height(ground, p) < 0
+        out.append(free)
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool, device=points.device)
 
 
@@ -49,11 +58,12 @@ def grid_points(res: int, device=None, dtype=torch.float32) -> torch.Tensor:
 
 
 def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1, slope_cells: float = 1.0,
-                clamp: float = 10.0) -> torch.Tensor:
+                clamp: float = 10.0, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None) -> torch.Tensor:
     """Logit volume (res+1)³ [x, y, z] of the visual hull: ≈ signed distance (in cells) × 2/slope_cells,
-    positive inside; points outside the unit sphere are free. Returns a float32 tensor on masks' device."""
+    positive inside; points outside the unit sphere (or below the support plane ``ground``) are free. Returns a
+    float32 tensor on masks' device."""
     pts = grid_points(res, device=masks.device)
-    free = outside_hull(pts, P, masks, min_views) | (pts.norm(dim=-1) > 1.0)
+    free = outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes) | (pts.norm(dim=-1) > 1.0)
     inside = (~free).view(res + 1, res + 1, res + 1).cpu().numpy()
     if not inside.any():
         return torch.full((res + 1,) * 3, -clamp, device=masks.device)
@@ -65,12 +75,14 @@ def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: 
 
 
 def hull_bounding_sphere(P: torch.Tensor, masks: torch.Tensor, res: int = 64, min_views: int = 1,
-                         margin: float = 1.1) -> tuple[np.ndarray, float] | None:
-    """Centre and radius (this frame) of a sphere around the visual hull of the masks, × ``margin`` plus one
-    cell; ``None`` when the hull is empty or already fills the unit sphere (no tighter frame to gain)."""
+                         margin: float = 1.1, ground: np.ndarray | None = None,
+                         sizes: torch.Tensor | None = None) -> tuple[np.ndarray, float] | None:
+    """Centre and radius (this frame) of a sphere around the visual hull of the masks (above the support plane
+    ``ground``), × ``margin`` plus one cell; ``None`` when the hull is empty or already fills the unit sphere (no
+    tighter frame to gain)."""
     pts = grid_points(res, device=masks.device)
     pts = pts[pts.norm(dim=-1) <= 1.0]
-    inside = pts[~outside_hull(pts, P, masks, min_views)]
+    inside = pts[~outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes)]
     if inside.shape[0] < 8:
         return None
     lo, hi = inside.min(0).values, inside.max(0).values

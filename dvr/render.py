@@ -30,7 +30,7 @@ def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, n_steps: int =
 @torch.no_grad()
 def render_view(field, data, view: int, scale: float = 1.0, n_steps: int = 128, background: float = 0.0):
     """Render view ``view`` of ``data`` (a SceneData) at ``scale`` × its resolution: (h, w, 3), (h, w)."""
-    _, H, W = data.shape
+    W, H = data.view_size(view)
     h, w = max(1, round(H * scale)), max(1, round(W * scale))
     dev = data.masks.device
     jj, ii = torch.meshgrid(torch.arange(w, device=dev) + 0.5, torch.arange(h, device=dev) + 0.5, indexing="xy")

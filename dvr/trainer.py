@@ -101,6 +101,9 @@ class TrainConfig:
     """Resolution of the visual-hull volume."""
     carve_min_views: int = 1
     """Views that must see a point outside their mask before it is carved."""
+    hull_gate: bool = True
+    """Apply the occupancy loss (mask rays the rendering misses) only where the visual hull agrees the point can
+    be occupied: a pixel one view's mask got wrong is outvoted instead of growing a floater."""
     weights: LossWeights = field(default_factory=LossWeights)
     """Loss weights."""
     field: FieldConfig = field(default_factory=FieldConfig)
@@ -136,9 +139,11 @@ def _atomic_save(obj, path: Path) -> None:
 def save_model(path: Path, model, cfg: FieldConfig, scale_mat: np.ndarray, extra: dict | None = None,
                frame: np.ndarray | None = None) -> None:
     """``scale_mat`` maps the field's frame to the SfM frame; ``frame`` maps it to the normalized frame of
-    cameras.npz (identity when the field was trained in that frame)."""
+    cameras.npz (identity when the field was trained in that frame); the support plane the field is clipped to
+    (field frame) is kept too."""
+    support = None if model.support is None else model.support.cpu().numpy()
     _atomic_save({"field": model.state_dict(), "field_config": asdict(cfg), "scale_mat": scale_mat,
-                  "frame": np.eye(4) if frame is None else frame, **(extra or {})}, path)
+                  "frame": np.eye(4) if frame is None else frame, "support": support, **(extra or {})}, path)
 
 
 def load_model(path: Path, device: torch.device):
@@ -150,6 +155,7 @@ def load_model(path: Path, device: torch.device):
     fc["occ_plane_res"] = tuple(fc.get("occ_plane_res", ()))
     model = make_field(FieldConfig(**fc)).to(device)
     model.load_state_dict(ck["field"])
+    model.set_support(ck.get("support"))
     model.eval()
     return model, ck["scale_mat"], np.asarray(ck.get("frame", np.eye(4)), dtype=np.float64)
 
@@ -160,7 +166,8 @@ class Trainer:
     def __init__(self, cfg: TrainConfig, data: SceneData, out_dir: Path):
         self.cfg = cfg
         if cfg.fit_frame:
-            sphere = hull_bounding_sphere(data.P, data.masks, cfg.hull_res, cfg.carve_min_views, cfg.frame_margin)
+            sphere = hull_bounding_sphere(data.P, data.masks, cfg.hull_res, cfg.carve_min_views, cfg.frame_margin,
+                                          ground=data.cams.ground, sizes=data.sizes)
             if sphere is not None:
                 data = data.reframe(*sphere)
         self.data = data
@@ -172,6 +179,7 @@ class Trainer:
         _set_seed(cfg.seed)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.model = make_field(cfg.field).to(self.device)
+        self.model.set_support(data.cams.ground)  # nothing below the floor or table is object
         if self.coarse:
             if not hasattr(self.model, "resize_base"):
                 raise ValueError(f"coarse_res needs field.kind 'grid', not '{cfg.field.kind}'")
@@ -179,7 +187,8 @@ class Trainer:
                 raise ValueError(f"upsample_at must lie in (0, 1), got {cfg.upsample_at}")
             self.model.resize_base(cfg.coarse_res)
         if cfg.hull_init:
-            vol = hull_logits(data.P, data.masks, cfg.hull_res, cfg.carve_min_views)
+            vol = hull_logits(data.P, data.masks, cfg.hull_res, cfg.carve_min_views, ground=data.cams.ground,
+                              sizes=data.sizes)
             if cfg.depth_carve_init and data.depth_val is not None:
                 o, d = data.rays(data.depth_views, data.depth_uv)
                 vol = carve_along_rays(vol, o, d, data.depth_val - cfg.depth_free_margin,
@@ -287,6 +296,11 @@ class Trainer:
         # occupancy: mask rays that miss → point of largest logit
         oc = inm & (st == MISS)
         oc_pts = (o + res.max_depth[:, None] * d)[oc]
+        if c.hull_gate and oc_pts.shape[0]:
+            # a mask pixel whose best point the other masks carve is a mask error, not missing surface: pushing it
+            # occupied against the carving grows floaters (a speck of floor kept in one view's automatic mask)
+            oc_pts = oc_pts[~outside_hull(oc_pts, self.data.P, self.data.masks, c.carve_min_views,
+                                          sizes=self.data.sizes)]
         terms["freespace"] = torch.zeros((), device=o.device)
         terms["occupancy"] = torch.zeros((), device=o.device)
 
@@ -313,7 +327,7 @@ class Trainer:
         # carving: random points of the unit sphere outside the visual hull
         cp = torch.randn(c.carve_points, 3, device=o.device)
         cp = cp / cp.norm(dim=-1, keepdim=True) * torch.rand(c.carve_points, 1, device=o.device) ** (1 / 3)
-        carve_pts = cp[outside_hull(cp, self.data.P, self.data.masks, c.carve_min_views)]
+        carve_pts = cp[outside_hull(cp, self.data.P, self.data.masks, c.carve_min_views, sizes=self.data.sizes)]
 
         # one field evaluation for all classification points
         nf, no, nd = fs_pts.shape[0], oc_pts.shape[0] + dep_pts.shape[0], free_pts.shape[0]
@@ -359,8 +373,9 @@ class Trainer:
     # ----------------------------------------------------------------- loop
     def preview(self, tag: str) -> None:
         v = self.step % len(self.data.names)
-        img, _ = render_view(self.model, self.data, v, scale=min(1.0, 256 / max(self.data.shape[1:])))
-        gt = self.data.images[v].cpu().numpy()
+        w, h = self.data.view_size(v)
+        img, _ = render_view(self.model, self.data, v, scale=min(1.0, 256 / max(w, h)))
+        gt = self.data.images[v, :h, :w].cpu().numpy()
         gt = cv2.resize(gt, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_AREA)
         both = np.concatenate([gt, img.cpu().numpy()], axis=1)
         cv2.imwrite(str(self.out / f"preview_{tag}.png"), cv2.cvtColor((both * 255).clip(0, 255).astype(np.uint8),

@@ -18,47 +18,41 @@ import cv2
 import numpy as np
 
 from dvr.cameras import decompose_projection, save_cameras, sphere_frame
-from dvr.data import IMAGE_EXTS
 
 from .cameras_config import CamerasConfig
 from .config import config_hash
+from .photos import PHOTO_EXTS, is_readable, read_photo, read_upright
+from .pose_sanity import axes_convergence, pose_sanity
+from .sfm import ladder, model_stats, run_rung, shortfalls
+from .support import SupportPlane, find_support
 from .workspace import StageError, Workspace
 
 
 # ----------------------------------------------------------------------------- inputs
 def list_photos(folder: Path) -> tuple[list[Path], list[str]]:
-    """Readable photos (sorted) and warnings about the files skipped."""
+    """Readable photos (sorted) and warnings about the files skipped; several photos with one stem (IMG_1.jpg and
+    IMG_1.heic) are an error, since every later stage names its files by stem."""
     if not folder.is_dir():
         raise StageError(f"{folder}: not a folder of photos; pass --images DIR")
     ok, skipped = [], []
     for p in sorted(folder.iterdir()):
-        if not p.is_file():
+        if not p.is_file() or p.name.startswith("."):
             continue
-        if p.suffix.lower() not in IMAGE_EXTS:
+        if p.suffix.lower() not in PHOTO_EXTS:
             skipped.append(f"{p.name} (not an image file)")
             continue
-        if cv2.imread(str(p), cv2.IMREAD_REDUCED_GRAYSCALE_8) is None:
+        if not is_readable(p):
             skipped.append(f"{p.name} (unreadable)")
             continue
         ok.append(p)
-    stems = [p.stem for p in ok]
-    dup = sorted({s for s in stems if stems.count(s) > 1})
+    by_stem: dict[str, list[str]] = {}
+    for p in ok:
+        by_stem.setdefault(p.stem, []).append(p.name)
+    dup = sorted(" and ".join(v) for v in by_stem.values() if len(v) > 1)
     if dup:
-        raise StageError(f"{folder}: several photos share the name(s) {', '.join(dup)} with different extensions; "
-                         "rename them")
+        raise StageError(f"{folder}: {'; '.join(dup[:3])}{' …' if len(dup) > 3 else ''} share a name with different "
+                         "extensions (the same shot twice?); keep one of each or rename them")
     return ok, skipped
-
-
-def read_upright(path: Path, max_side: int) -> np.ndarray:
-    """BGR image with EXIF orientation applied, downscaled (INTER_AREA) so its longest side ≤ max_side."""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)  # applies EXIF orientation
-    if img is None:
-        raise StageError(f"{path}: unreadable image; remove it from the folder")
-    h, w = img.shape[:2]
-    s = min(1.0, max_side / max(h, w))
-    if s < 1.0:
-        img = cv2.resize(img, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
-    return img
 
 
 def write_points(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:
@@ -73,28 +67,19 @@ def write_points(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:
 
 
 # ----------------------------------------------------------------------------- normalisation
-def axes_convergence(centers: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """Least-squares point closest to all optical axes."""
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for c, d in zip(centers, dirs):
-        d = d / np.linalg.norm(d)
-        M = np.eye(3) - np.outer(d, d)
-        A += M
-        b += M @ c
-    return np.linalg.lstsq(A, b, rcond=None)[0]
-
-
 def normalization(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, centers: np.ndarray, dirs: np.ndarray,
-                  margin: float, focals: np.ndarray | None = None) -> np.ndarray:
+                  margin: float, focals: np.ndarray | None = None, support: SupportPlane | None = None) -> np.ndarray:
     """scale_mat (normalized → SfM) from sparse points seen inside most images, centred where the optical
     axes converge; the radius is a robust (97th percentile) extent of those points × margin, kept inside
     the cameras and, with ``focals``, inside what the images can show: at most 1.25 × the (median over views)
     sphere whose outline passes through the image corners. A weakly textured object in front of a textured
     background yields few points of its own (a white cow: 19 of 3900), and the background's would otherwise
-    set the radius."""
+    set the radius. With a ``support`` plane, its points (and any below it) are not the object: the sphere
+    bounds what stands on it, and reaches down to it (radius ≥ 1.15 × the centre's height above it)."""
     c = axes_convergence(centers, dirs)
     dist = np.linalg.norm(centers - c, axis=1)
+    if support is not None:
+        points = points[support.height(points) > 2 * support.tolerance]
     if len(points):
         ph = np.concatenate([points, np.ones((len(points), 1))], 1)
         x = np.einsum("nij,mj->nmi", Ps, ph)
@@ -110,63 +95,96 @@ def normalization(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, centers
     if focals is not None:
         half_diag = np.arctan(0.5 * np.hypot(sizes[:, 0], sizes[:, 1]) / np.asarray(focals, float))
         r = min(r, 1.25 * float(np.median(dist * np.sin(half_diag))))
+    if support is not None:
+        r = max(r, 1.15 * float(support.height(c[None])[0]))
     return sphere_frame(c, min(r, 0.95 * dist.min()))
 
 
 # ----------------------------------------------------------------------------- SfM
-def _largest(recs: dict):
-    if not recs:
-        return None, None
-    k = max(recs, key=lambda i: recs[i].num_reg_images())
-    return k, recs[k]
-
-
-def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
-    import pycolmap
-
+def prepare_sfm_input(ws: Workspace, photos: list[Path], cfg: CamerasConfig) -> tuple[Path, list[list[str]]]:
+    """Upright copies of the photos (longest side ≤ max_side_sfm) in ``sfm/input``, grouped by size."""
     sfm = ws.root / "sfm"
-    inp = sfm / "input"
     if sfm.exists():
         shutil.rmtree(sfm)
+    inp = sfm / "input"
     inp.mkdir(parents=True)
     groups: dict[tuple[int, int], list[str]] = {}
     for p in photos:
         img = read_upright(p, cfg.max_side_sfm)
+        if img is None:
+            raise StageError(f"{p}: unreadable image; remove it from the folder")
         cv2.imwrite(str(inp / f"{p.stem}.png"), img)
         groups.setdefault(img.shape[:2], []).append(f"{p.stem}.png")
-    db = sfm / "database.db"
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = cfg.camera_model
-    ext = pycolmap.FeatureExtractionOptions()
-    ext.sift.max_num_features = cfg.max_features
-    # one shared camera per image size (a phone's landscape and portrait shots are two cameras)
-    for names in groups.values():
-        pycolmap.extract_features(db, inp, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                                  reader_options=reader, extraction_options=ext)
-    n = len(photos)
-    if cfg.matching == "exhaustive" or (cfg.matching == "auto" and n <= 80):
-        pycolmap.match_exhaustive(db)
-    else:
-        pycolmap.match_sequential(db)
-    out = sfm / "sparse"
-    out.mkdir()
-    if cfg.mapper == "global":
-        recs = pycolmap.global_mapping(db, inp, out)
-    else:
-        recs = pycolmap.incremental_mapping(db, inp, out)
-    k, rec = _largest(recs)
-    if rec is None or rec.num_reg_images() < 2:
+    return inp, list(groups.values())
+
+
+def _drop_views(rec, names: set[str]) -> None:
+    for i in list(rec.reg_image_ids()):
+        if rec.image(i).name in names:
+            rec.deregister_frame(rec.image(i).frame_id)
+
+
+def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
+    """Climb the SfM ladder (:mod:`pipeline.sfm`) until a rung registers every photo with sane poses; returns
+    (model, folder of the images SfM saw, summary of the rungs tried)."""
+    inp, groups = prepare_sfm_input(ws, photos, cfg)
+    names = [p.stem for p in photos]
+    work = ws.root / "sfm" / "ladder"
+    work.mkdir()
+    tried, best, rejected = [], None, {}
+    for rung in ladder(cfg.start_rung, cfg.last_rung, cfg.max_features):
+        t0 = time.perf_counter()
+        rec, database, secs, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed)
+        dt = time.perf_counter() - t0
+        if rec is None or rec.num_reg_images() < 2:
+            print(f"cameras: rung {rung.name}: {err or 'no model'} ({dt:.1f} s)")
+            tried.append({"rung": rung.name, "seconds": round(dt, 1), "error": err or "no model"})
+            continue
+        bad = pose_sanity(rec, inp)
+        n_reg = rec.num_reg_images()
+        if len(bad) > cfg.max_bad_pose_fraction * n_reg:
+            print(f"cameras: rung {rung.name}: {n_reg} registered but {len(bad)} poses are not credible, model "
+                  f"rejected ({dt:.1f} s)")
+            rejected.update(bad)
+            tried.append({"rung": rung.name, "seconds": round(dt, 1), "registered": n_reg, "rejected": len(bad)})
+            continue
+        _drop_views(rec, set(bad))
+        stats = model_stats(rec, names)
+        short = shortfalls(stats, cfg.max_reprojection_error)
+        dropped = f", dropped {len(bad)} views with wrong poses ({', '.join(sorted(bad)[:4])})" if bad else ""
+        print(f"cameras: rung {rung.name}: registered {stats['registered']}/{len(names)}, "
+              f"{stats['mean_reprojection_error']:.2f} px, track length {stats['mean_track_length']:.2f}"
+              f"{dropped} in {dt:.1f} s → {'; '.join(short) if short else 'complete'}")
+        tried.append({"rung": rung.name, "seconds": round(dt, 1), **{k: stats[k] for k in ("registered",
+                      "mean_reprojection_error", "mean_track_length")}, "dropped": sorted(bad), "steps": secs})
+        key = (stats["registered"], -stats["mean_reprojection_error"])
+        if best is None or key > best[0]:
+            best = (key, rec, rung.name, database)
+        if not short:
+            break
+    if best is None:
+        if rejected:
+            views = ", ".join(sorted(Path(n).stem for n in rejected)[:8])
+            raise StageError(f"{inp.parent.parent}: SfM poses are inconsistent for every setting tried (views {views}"
+                             f"{' …' if len(rejected) > 8 else ''}): a symmetric or repetitive object or floor — "
+                             "put a textured mat (a newspaper) under the object, or add texture around it")
         raise StageError(f"{inp}: SfM found no model (too few matches): photograph the object with more overlap "
                          "(≥ 60 % between neighbours), more texture, and sharp, well-lit images")
+    rec = best[1]
+    if rejected and rec.num_reg_images() < max(3, cfg.min_registered_fraction * len(names)):
+        views = ", ".join(sorted(Path(n).stem for n in rejected)[:8])
+        raise StageError(f"{inp.parent.parent}: SfM registered {rec.num_reg_images()}/{len(names)} photos with "
+                         f"credible poses; other settings placed views {views}{' …' if len(rejected) > 8 else ''} "
+                         "where they cannot be: a symmetric or repetitive object or floor — put a textured mat (a "
+                         "newspaper) under the object, or add texture around it")
     rec, notes = prefer_pinhole(rec, cfg.pinhole_tolerance)
     for note in notes:
         print(f"cameras: {note}")
-    best = out / "best"
-    if best.exists():
-        shutil.rmtree(best)
-    best.mkdir()
-    rec.write(best)
-    return rec, best, inp
+    best_dir = ws.root / "sfm" / "sparse" / "best"
+    best_dir.mkdir(parents=True)
+    rec.write(best_dir)
+    shutil.copy(best[3], ws.root / "sfm" / "database.db")  # the database of the model kept, where COLMAP puts it
+    return rec, inp, {"rung": best[2], "rungs": tried}
 
 
 def prefer_pinhole(rec, tolerance: float):
@@ -266,10 +284,25 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
     cols = np.asarray(cols, np.uint8).reshape(-1, 3)
     centers = -np.einsum("nji,nj->ni", Rs, ts)
     Ps = Ks @ np.concatenate([Rs, ts[:, :, None]], 2)
-    S = normalization(pts, Ps, sizes, centers, Rs[:, 2, :], cfg.radius_margin, focals=Ks[:, 0, 0])
-    save_cameras(ws.cameras, Ks, Rs, ts, S)
+    support = find_support(pts, centers, Rs, axes_convergence(centers, Rs[:, 2, :])) if cfg.support else None
+    S = normalization(pts, Ps, sizes, centers, Rs[:, 2, :], cfg.radius_margin, focals=Ks[:, 0, 0], support=support)
+    save_cameras(ws.cameras, Ks, Rs, ts, S, None if support is None else support.vector)
     write_points(ws.root / "points.ply", pts, cols)
-    return {"views": kept, "radius": float(S[0, 0]), "center": S[:3, 3].tolist()}
+    return {"views": kept, "radius": float(S[0, 0]), "center": S[:3, 3].tolist(), "support": support_info(support, S)}
+
+
+def support_info(support: SupportPlane | None, S: np.ndarray) -> dict | None:
+    """What the stage reports of the support plane (heights in units of the object sphere's radius)."""
+    if support is None:
+        print("cameras: no support plane (the object is not standing on a textured surface the SfM points show)")
+        return None
+    centre_h = float(support.height(S[:3, 3][None])[0]) / S[0, 0]
+    info = {"normal": np.round(support.normal, 4).tolist(), "offset": round(float(support.offset), 6),
+            "inliers": support.inliers, "object_height": round(support.object_height / S[0, 0], 4),
+            "sphere_centre_height": round(centre_h, 4)}
+    print(f"cameras: support plane found: {support.inliers} SfM points on it, the object stands "
+          f"{info['object_height']:.2f} high on it (unit sphere radii; the sphere centre {centre_h:.2f} above it)")
+    return info
 
 
 # ----------------------------------------------------------------------------- given cameras
@@ -288,7 +321,7 @@ def import_cameras(ws: Workspace, photos: list[Path], cam_file: Path, cfg: Camer
     ws.images.mkdir(parents=True)
     Ks, Rs, ts = [], [], []
     for i, p in enumerate(photos):
-        full = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        full = read_photo(p)
         h, w = full.shape[:2]
         img = read_upright(p, cfg.max_side)
         nh, nw = img.shape[:2]
@@ -354,8 +387,9 @@ def run(ws: Workspace, images: Path | None, cfg: CamerasConfig, cameras: Path | 
     elif cameras is not None:
         info = import_cameras(ws, photos, Path(cameras), cfg)
     else:
-        rec, _, inp = run_sfm(ws, photos, cfg)
+        rec, inp, ladder_info = run_sfm(ws, photos, cfg)
         info = report_sfm(rec, [p.stem for p in photos], cfg)
+        info.update(ladder_info)
         info.update(export_model(ws, rec, inp, cfg, [p.stem for p in photos]))
     ws.mark_done("cameras", h, time.perf_counter() - t0, {k: v for k, v in info.items() if k != "views"})
     print(f"cameras: {len(info['views'])} views → {ws.cameras}")

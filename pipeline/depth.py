@@ -1,7 +1,8 @@
 """Stage ``depth``: sparse depth per view from the SfM tracks → ``depth/<stem>.npz``.
 
 Only the views that observe a point get it; points are kept when their track is long enough, their
-reprojection error small, and they lie inside the object's unit sphere. Each file holds ``uv`` (K, 2)
+reprojection error small, and they lie inside the object's unit sphere (and above the support plane, when the
+object stands on one). Each file holds ``uv`` (K, 2)
 continuous pixel coordinates of images/ (pixel centres at +0.5), ``depth`` (K,) the Euclidean distance from
 the camera centre along the ray in the NORMALIZED frame (dvr's ray depth), ``confidence`` (K,) in (0, 1].
 """
@@ -14,11 +15,12 @@ import time
 import cv2
 import numpy as np
 
-from dvr.cameras import load_cameras
+from dvr.cameras import load_cameras, plane_height
 from dvr.data import list_images
 
 from .cameras_config import DepthConfig
 from .config import config_hash
+from .support import GROUND_BAND
 from .workspace import Workspace
 
 
@@ -63,8 +65,8 @@ def run(ws: Workspace, cfg: DepthConfig, force: bool = False) -> bool:
             if tl < cfg.min_track_length or P3.error > cfg.max_reprojection_error:
                 continue
             xn = (np.asarray(P3.xyz) - S[:3, 3]) / S[0, 0]
-            if np.linalg.norm(xn) >= 1.0:
-                continue
+            if np.linalg.norm(xn) >= 1.0 or (cams.ground is not None and plane_height(cams.ground, xn) < GROUND_BAND):
+                continue  # outside the object's sphere, or on the floor it stands on
             uv.append((p2.xy[0] * sx, p2.xy[1] * sy))
             dep.append(np.linalg.norm(xn - center))
             conf.append(min(1.0, (tl - 1) / 4.0) * float(np.exp(-0.5 * (P3.error / cfg.max_reprojection_error) ** 2)))

@@ -30,14 +30,15 @@ import cv2
 import numpy as np
 import torch
 
-from dvr.cameras import load_cameras
-from dvr.data import list_images
+from dvr.cameras import Cameras, load_cameras, plane_height, sphere_bounds
+from dvr.data import list_images, pad_stack
 from dvr.hull import hull_logits
 
 from .cameras_config import MasksConfig
 from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
 from .config import config_hash
 from .raycast import mesh_intersector, pixel_center_rays
+from .support import GROUND_BAND
 from .workspace import StageError, Workspace
 
 
@@ -90,20 +91,36 @@ def _tracks(ws: Workspace, names: list[str]):
     return xyz, obs
 
 
-def _sphere_disc(P: np.ndarray, h: int, w: int, n: int = 256) -> np.ndarray:
-    """Mask of the projection of the unit sphere (as the hull of projected sample points)."""
-    u = np.random.default_rng(0).normal(size=(4096, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    x = (P @ np.concatenate([u, np.ones((len(u), 1))], 1).T).T
-    front = x[:, 2] > 1e-9
-    disc = np.zeros((h, w), np.uint8)
-    if front.sum() < 3 or not front.all():
-        disc[:] = 1  # camera inside/near the sphere: no constraint
-        return disc
-    uv = x[:, :2] / x[:, 2:]
-    hull = cv2.convexHull(uv.astype(np.float32) - 0.5)
-    cv2.fillConvexPoly(disc, np.round(hull).astype(np.int32), 1)
-    return disc
+def object_region(cams: Cameras, i: int, h: int, w: int) -> np.ndarray:
+    """(h, w) bool: pixels whose ray passes through the unit sphere ABOVE the support plane (all of the sphere
+    without one). The object lies there by construction: every other pixel is background."""
+    o, d = pixel_center_rays(cams.K[i], cams.R[i], cams.centers[i], w, h)
+    near, far, hit = (x.numpy() for x in sphere_bounds(torch.from_numpy(o.copy()), torch.from_numpy(d)))
+    if cams.ground is not None:
+        h0 = plane_height(cams.ground, o)  # camera height (the same for every ray)
+        rate = d @ cams.ground[:3]  # height change per unit depth
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_cross = np.where(np.abs(rate) > 1e-12, -h0 / rate, np.inf)
+        above_from = np.where((h0 < 0) & (rate > 0), t_cross, -np.inf)  # a camera below rises above at t_cross
+        above_to = np.where((h0 >= 0) & (rate < 0), t_cross, np.inf)  # a camera above sinks below at t_cross
+        near, far = np.maximum(near, above_from), np.minimum(far, above_to)
+        hit &= (h0 >= 0) | (rate > 0)
+    return (hit & (far > near)).reshape(h, w)
+
+
+def remove_specks(mask: np.ndarray, fraction: float) -> np.ndarray:
+    """Fill holes and drop islands smaller than ``fraction`` of the image (seed noise: a pin-hole in a mask carves a
+    tunnel into the object, a speck grows a floater); larger holes (a handle, a torus) stay."""
+    limit = fraction * mask.size
+    out = mask.copy()
+    for value in (False, True):  # holes (background components), then islands (object components)
+        n, lab, stats, _ = cv2.connectedComponentsWithStats((out == value).astype(np.uint8), connectivity=4)
+        small = np.nonzero(stats[1:, cv2.CC_STAT_AREA] < limit)[0] + 1
+        if value is False:  # a background component touching the border is the outside, never a hole
+            border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+            small = np.setdiff1d(small, border)
+        out[np.isin(lab, small)] = not value
+    return out
 
 
 def grabcut(img: np.ndarray, init: np.ndarray, iters: int) -> np.ndarray:
@@ -128,30 +145,36 @@ def grabcut_all(imgs: list[np.ndarray], labels: list[np.ndarray], iters: int) ->
         return list(pool.map(lambda a: grabcut(a[0], a[1], iters), zip(imgs, labels)))
 
 
-def seed_labels(P: np.ndarray, h: int, w: int, pts_n: np.ndarray | None, vis: list[int] | None,
+def seed_labels(cams: Cameras, i: int, h: int, w: int, pts_n: np.ndarray | None, vis: list[int] | None,
                 r: int) -> np.ndarray:
+    """GrabCut labels of view ``i`` from geometry: outside the object region (:func:`object_region`) background;
+    the sparse points it observes drawn as discs — object inside the sphere (radius < 0.9) and above the support,
+    background beyond ``BACKGROUND_RADIUS`` or on (or below) the support plane."""
     lab = np.full((h, w), cv2.GC_PR_BGD, np.uint8)
-    disc = _sphere_disc(P, h, w)
-    lab[disc > 0] = cv2.GC_PR_FGD
-    lab[disc == 0] = cv2.GC_BGD
+    region = object_region(cams, i, h, w)
+    lab[region] = cv2.GC_PR_FGD
+    lab[~region] = cv2.GC_BGD
     if pts_n is not None and vis is not None and len(vis):
         p = pts_n[vis]
-        x = (P @ np.concatenate([p, np.ones((len(p), 1))], 1).T).T
+        x = (cams.P[i] @ np.concatenate([p, np.ones((len(p), 1))], 1).T).T
         ok = x[:, 2] > 1e-9
         uv = np.round(x[ok, :2] / x[ok, 2:] - 0.5).astype(int)
         rad = np.linalg.norm(p[ok], axis=1)
-        for (u, v), rr in zip(uv, rad):
+        on_support = plane_height(cams.ground, p[ok]) < GROUND_BAND if cams.ground is not None else \
+            np.zeros(len(rad), bool)
+        for (u, v), rr, flat in zip(uv, rad, on_support):
             if 0 <= u < w and 0 <= v < h:
-                if rr < 0.9:
-                    cv2.circle(lab, (int(u), int(v)), r, cv2.GC_FGD, -1)
-                elif rr > BACKGROUND_RADIUS:
+                if flat or rr > BACKGROUND_RADIUS:
                     cv2.circle(lab, (int(u), int(v)), r, cv2.GC_BGD, -1)
+                elif rr < 0.9:
+                    cv2.circle(lab, (int(u), int(v)), r, cv2.GC_FGD, -1)
     return lab
 
 
 @torch.no_grad()
-def hull_silhouettes(P: torch.Tensor, masks: torch.Tensor, cams, res: int, min_views: int) -> np.ndarray:
-    """Render the visual hull (carving with ``min_views``) into every view: (N, H, W) bool.
+def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int) -> list[np.ndarray]:
+    """Render the visual hull of ``masks`` (one bool array per view, each its own size; carving with
+    ``min_views``; nothing below the support plane) into every view: one bool array per view.
 
     The hull's logit volume becomes a mesh (marching cubes) and every pixel centre's ray is cast against it
     (Embree through trimesh) — 40× faster than marching the volume along every ray.
@@ -159,18 +182,17 @@ def hull_silhouettes(P: torch.Tensor, masks: torch.Tensor, cams, res: int, min_v
     import trimesh
     from skimage import measure
 
-    N, H, W = masks.shape
-    lg = hull_logits(P, masks, res=res, min_views=min_views, slope_cells=1.0).cpu().numpy()
-    if lg.max() <= 0:
-        return np.zeros((N, H, W), bool)
-    if lg.min() > 0:
-        return np.ones((N, H, W), bool)
+    canvas, sizes = pad_stack([m.astype(np.float32) for m in masks])
+    lg = hull_logits(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res=res, min_views=min_views,
+                     slope_cells=1.0, ground=cams.ground, sizes=torch.from_numpy(sizes)).cpu().numpy()
+    if lg.max() <= 0 or lg.min() > 0:
+        return [np.full(m.shape, lg.min() > 0) for m in masks]
     v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
     inter = mesh_intersector(trimesh.Trimesh(v - 1.0, f, process=False))
-    out = np.zeros((N, H, W), bool)
-    for i in range(N):
+    out = []
+    for i, (W, H) in enumerate(sizes):
         o, d = pixel_center_rays(cams.K[i], cams.R[i], cams.centers[i], W, H)
-        out[i] = inter.intersects_any(o, d).reshape(H, W)
+        out.append(inter.intersects_any(o, d).reshape(H, W))
     return out
 
 
@@ -190,7 +212,6 @@ def background_depths(cams, pts_n: np.ndarray | None, obs: dict | None, names: l
 
 def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> dict:
     cams = load_cameras(ws.cameras, n_views=len(names))
-    Pn = cams.P
     xyz, obs = _tracks(ws, names)
     pts_n = None
     if xyz is not None and len(xyz):
@@ -203,32 +224,31 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     seeds = []
     for i, (n, img) in enumerate(zip(names, imgs)):
         h, w = img.shape[:2]
-        lab = seed_labels(Pn[i], h, w, pts_n, obs.get(n) if obs else None, cfg.seed_radius)
+        lab = seed_labels(cams, i, h, w, pts_n, obs.get(n) if obs else None, cfg.seed_radius)
         if stereo is not None:
             inside = lab != cv2.GC_BGD  # the projected sphere
             lab[inside & (stereo[i] == OBJECT)] = cv2.GC_FGD
             lab[inside & (stereo[i] == BACKGROUND)] = cv2.GC_BGD
         seeds.append(lab)
-    first = grabcut_all(imgs, seeds, cfg.grabcut_iters)
+    first = [remove_specks(m, cfg.speck_fraction) for m in grabcut_all(imgs, seeds, cfg.grabcut_iters)]
     k = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
-    Pt = torch.from_numpy(Pn).float()
     current = first
     for _ in range(max(1, cfg.vote_rounds)):
         # vote: the hull of the current masks (carving needs carve_min_views) is an upper bound in every view
-        sil = hull_silhouettes(Pt, torch.from_numpy(np.stack(current).astype(np.float32)), cams, cfg.hull_res,
-                               cfg.carve_min_views)
+        sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views)
         labs = []
         for i, img in enumerate(imgs):
-            # outside the silhouette: background; inside, the point seeds stay hard and GrabCut decides the
-            # rest (e.g. a hole the hull could not carve yet)
+            # outside the silhouette: background (an object seed there is outvoted by the views that carved that
+            # space); inside, the seeds stay hard and GrabCut decides the rest (e.g. a hole the hull could not
+            # carve yet)
             s = sil[i].astype(np.uint8)
             lab = np.full(s.shape, cv2.GC_BGD, np.uint8)
             lab[cv2.dilate(s, k) > 0] = cv2.GC_PR_BGD
             lab[s > 0] = cv2.GC_PR_FGD
-            hard = (seeds[i] == cv2.GC_FGD) | ((seeds[i] == cv2.GC_BGD) & (cv2.dilate(s, k) > 0))
+            hard = ((seeds[i] == cv2.GC_FGD) & (s > 0)) | ((seeds[i] == cv2.GC_BGD) & (cv2.dilate(s, k) > 0))
             lab[hard] = seeds[i][hard]
             labs.append(lab)
-        current = grabcut_all(imgs, labs, cfg.grabcut_iters)
+        current = [remove_specks(m, cfg.speck_fraction) for m in grabcut_all(imgs, labs, cfg.grabcut_iters)]
     conf = {}
     for i, n in enumerate(names):
         cv2.imwrite(str(ws.masks / f"{n}.png"), current[i].astype(np.uint8) * 255)
@@ -238,15 +258,36 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     return conf
 
 
-def write_overlays(ws: Workspace, names: list[str], imgs: list[np.ndarray]) -> None:
+def support_outline(cams: Cameras, i: int, n: int = 180) -> np.ndarray | None:
+    """Pixel polyline (k, 2) of the circle where the support plane cuts the unit sphere, as view ``i`` sees it
+    (the part in front of the camera); None without a support plane or when the plane misses the sphere."""
+    if cams.ground is None or abs(cams.ground[3]) >= 1.0:
+        return None
+    nrm, d = cams.ground[:3], cams.ground[3]
+    e1 = np.cross(nrm, [1.0, 0, 0] if abs(nrm[0]) < 0.9 else [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nrm, e1)
+    th = np.linspace(0, 2 * np.pi, n)
+    pts = -d * nrm + np.sqrt(1 - d * d) * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
+    x = (cams.P[i] @ np.concatenate([pts, np.ones((n, 1))], 1).T).T
+    ok = x[:, 2] > 1e-6
+    return x[ok, :2] / x[ok, 2:] - 0.5 if ok.sum() > 1 else None
+
+
+def write_overlays(ws: Workspace, names: list[str], imgs: list[np.ndarray], cams: Cameras | None = None) -> None:
+    """Photo with the background darkened, the mask's outline (green) and, when the object stands on a support
+    plane, where that plane cuts the object's sphere (orange)."""
     out = ws.masks / "overlays"
     out.mkdir(exist_ok=True)
-    for n, img in zip(names, imgs):
+    for i, (n, img) in enumerate(zip(names, imgs)):
         m = cv2.imread(str(ws.masks / f"{n}.png"), cv2.IMREAD_GRAYSCALE) > 127
         ov = img.copy()
         ov[~m] = (ov[~m] * 0.3).astype(np.uint8)
         cnt, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         cv2.drawContours(ov, cnt, -1, (0, 255, 0), 1)
+        line = support_outline(cams, i) if cams is not None else None
+        if line is not None:
+            cv2.polylines(ov, [np.round(line * 16).astype(np.int32)], False, (0, 165, 255), 1, cv2.LINE_AA, shift=4)
         cv2.imwrite(str(out / f"{n}.jpg"), ov, [cv2.IMWRITE_JPEG_QUALITY, 90])
 
 
@@ -270,7 +311,7 @@ def run(ws: Workspace, cfg: MasksConfig, masks: Path | None = None, force: bool 
         conf = import_user_masks(ws, names, [(im.shape[1], im.shape[0]) for im in imgs], Path(masks), cfg)
     else:
         conf = auto_masks(ws, names, imgs, cfg)
-    write_overlays(ws, names, imgs)
+    write_overlays(ws, names, imgs, load_cameras(ws.cameras, n_views=len(names)))
     (ws.masks / "confidence.json").write_text(json.dumps(conf, indent=1))
     low = [n for n, c in conf.items() if c < 0.8]
     if low:

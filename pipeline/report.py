@@ -114,6 +114,33 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
     return out
 
 
+def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
+    """SfM (the ladder's rungs) and the support plane, in words."""
+    out = ["<h2>Cameras and support</h2><ul>"]
+    if cameras_stamp.get("rungs"):
+        steps = "; ".join(f"{r['rung']}: {r.get('registered', 0)} registered in {r['seconds']} s"
+                          + (f", {len(r['dropped'])} views with wrong poses dropped" if r.get("dropped") else "")
+                          + (f", rejected ({r['rejected']} poses not credible)" if r.get("rejected") else "")
+                          + (f", {r['error']}" if r.get("error") else "") for r in cameras_stamp["rungs"])
+        out.append(f"<li>SfM ladder: {html.escape(steps)} → kept <b>{html.escape(str(cameras_stamp.get('rung')))}</b>"
+                   "</li>")
+    ground = None
+    if ws.cameras.exists():
+        z = np.load(ws.cameras)
+        ground = z["ground_plane"] if "ground_plane" in z.files else None
+    sup = cameras_stamp.get("support")
+    if ground is not None:
+        detail = (f": {sup['inliers']} SfM points on it, the object stands {sup['object_height']:.2f} unit-sphere radii "
+                  f"high on it" if sup else "")
+        out.append(f"<li>support plane found{detail} (normal {np.round(ground[:3], 3).tolist()} in the SfM frame). "
+                   "It is background for the masks (orange outline in the overlays), nothing below it is object, "
+                   "and the mesh is closed flat where the object touches it.</li>")
+    else:
+        out.append("<li>no support plane: the object is not standing on a textured surface the SfM points show "
+                   "(held, hung, or on a plain backdrop); masks and mesh as without one.</li>")
+    return "".join(out) + "</ul>"
+
+
 def build(ws: Workspace) -> str:
     secs = ws.seconds()
     stamps = {}
@@ -130,6 +157,7 @@ def build(ws: Workspace) -> str:
             parts.append(f"<tr><td>{st}</td><td>{secs.get(st, 0):.1f}</td><td><code>"
                          f"{html.escape(json.dumps(det))}</code></td></tr>")
     parts.append(f"<tr><td><b>total</b></td><td><b>{sum(secs.values()):.1f}</b></td><td></td></tr></table>")
+    parts.append(capture_section(ws, stamps.get("cameras", {})))
     glb = ws.mesh / "textured.glb"
     if glb.exists():
         parts.append("<h2>Mesh</h2>")

@@ -12,7 +12,7 @@ from dvr.device import resolve_device
 from dvr.trainer import TrainConfig, Trainer
 
 from .config import config_hash
-from .workspace import StageError, Workspace
+from .workspace import StageError, Workspace, newest_mtime
 
 
 def run(ws: Workspace, cfg: TrainConfig, force: bool = False, stop_after: int | None = None) -> bool:
@@ -26,11 +26,14 @@ def run(ws: Workspace, cfg: TrainConfig, force: bool = False, stop_after: int | 
         return False
     ws.clear("train")
     cfg_file = ws.model / "config.json"
-    same_cfg = cfg_file.exists() and json.loads(cfg_file.read_text()).get("hash") == h
-    if force or not same_cfg:
-        shutil.rmtree(ws.model, ignore_errors=True)  # another config: its checkpoint is not ours to resume
+    inputs_time = max(newest_mtime(p) for p in inputs)
+    old = json.loads(cfg_file.read_text()) if cfg_file.exists() else {}
+    if force or old.get("hash") != h or old.get("inputs_time") != inputs_time:
+        # another config, or new masks / images / cameras: that checkpoint is not ours to resume
+        shutil.rmtree(ws.model, ignore_errors=True)
     ws.model.mkdir(parents=True, exist_ok=True)
-    cfg_file.write_text(json.dumps({"hash": h, "config": asdict(cfg)}, indent=1, default=str))
+    cfg_file.write_text(json.dumps({"hash": h, "inputs_time": inputs_time, "config": asdict(cfg)}, indent=1,
+                                   default=str))
     try:
         data = load_scene(ws.root, resolve_device(cfg.device))
     except (FileNotFoundError, ValueError) as exc:

@@ -70,7 +70,7 @@ class Workspace:
         if rec.get("config") != cfg_hash or not all(p.exists() for p in outputs):
             return False
         t = stamp.stat().st_mtime
-        return all(_newest_mtime(p) <= t for p in inputs)
+        return all(newest_mtime(p) <= t for p in inputs)
 
     def mark_done(self, stage: str, cfg_hash: str, seconds: float, extra: dict | None = None) -> None:
         self.stages.mkdir(parents=True, exist_ok=True)
@@ -78,6 +78,13 @@ class Workspace:
         tmp = self._stamp(stage).with_suffix(".tmp")
         tmp.write_text(json.dumps(rec, indent=1))
         os.replace(tmp, self._stamp(stage))
+
+    def stamp(self, stage: str) -> dict | None:
+        """What a finished stage recorded (its config hash, seconds and details), or None."""
+        try:
+            return json.loads(self._stamp(stage).read_text())
+        except (OSError, ValueError):
+            return None
 
     def clear(self, stage: str) -> None:
         self._stamp(stage).unlink(missing_ok=True)
@@ -92,7 +99,8 @@ class Workspace:
         return out
 
 
-def _newest_mtime(p: Path) -> float:
+def newest_mtime(p: Path) -> float:
+    """Newest modification time of a file or of anything inside a folder (0 when missing)."""
     if not p.exists():
         return 0.0
     if p.is_file():
@@ -102,3 +110,25 @@ def _newest_mtime(p: Path) -> float:
         if q.is_file():
             m = max(m, q.stat().st_mtime)
     return m
+
+
+def subset_workspace(full: Path, dst: Path, keep: list[int]) -> None:
+    """A new workspace ``dst`` of views ``keep`` (indices into ``full``'s sorted images): their images, masks and
+    sparse depth, and the cameras renumbered (scale_mat and the support plane kept) — to hold photos out of
+    training after SfM and the masks saw them all."""
+    import shutil
+
+    import numpy as np
+
+    from dvr.data import list_images
+
+    names = [p.stem for p in list_images(Path(full) / "images")]
+    for sub in ("images", "masks", "depth"):
+        (Path(dst) / sub).mkdir(parents=True)
+        for i in keep:
+            for f in (Path(full) / sub).glob(f"{names[i]}.*"):
+                shutil.copy2(f, Path(dst) / sub / f.name)
+    z = np.load(Path(full) / "cameras.npz")
+    extra = {k: z[k] for k in ("scale_mat", "ground_plane") if k in z.files}
+    np.savez(Path(dst) / "cameras.npz", **extra, **{f"{k}_{j}": z[f"{k}_{i}"] for j, i in enumerate(keep)
+                                                    for k in ("world_mat", "scale_mat", "camera_mat")})

@@ -1,75 +1,145 @@
-"""End to end through COLMAP on a synthetic scene (no GT cameras or masks given to the pipeline):
-cameras → masks → depth → train → mesh → texture with the default preset; Chamfer ≤ 2 % of the GT diagonal
-after Sim(3) alignment, and PSNR ≥ 25 dB of the textured mesh rendered at the held-out views' GT poses (they lie
-between the training views), over the object's pixels in the photo OR the rendering (a silhouette error counts
-against it).
+"""End to end from a phone's photo folder, no GT cameras or masks given: a noise-textured torus lying on a blocky
+floor (the floor shows through its hole), photographed as a phone writes it — JPEGs with EXIF orientation 1, 6, 3
+and 8 (portrait and landscape shots in one folder), one HEIC, one 16-bit PNG and one RGBA PNG, in a folder whose
+path holds spaces. The held-out photos go through SfM and the masks with the others and are held out of training
+(the protocol of NeRF-style evaluations on COLMAP poses); the textured mesh is rendered at the poses SfM gave them.
 
-The held-out photos come from the camera SfM calibrated, so they are rendered with its estimated focal length
-(as NeRF evaluations on COLMAP poses do). Orbit captures hardly fix the focal length against the object's
-scale: on this scene the bundle-adjustment error with GT poses is flat over ±0.5 % of focal (0.1907–0.1912
-px), and COLMAP lands 0.4–0.6 % short; pairing the GT focal with the reconstruction measures that gauge, not
-the reconstruction (≈ 26 dB here, 24.9 dB on one CI machine). That number is printed and must stay ≥ 23 dB,
-so a focal length really off still fails."""
+Asserted: every photo registered with poses within 1 % of the orbit (after Sim(3), the rolled cameras of the
+portrait shots included); the support plane found; automatic masks IoU ≥ 0.95 against the object's GT masks —
+and < 0.9 with the same cameras when the plane is withheld from the masks (the floor is taken for the object: what
+this test guards); Chamfer ≤ 1 % of the diagonal, F@1 % ≥ 0.95, held-out PSNR ≥ 24 dB; a closed mesh."""
 
 import json
+import shutil
 
 import cv2
 import numpy as np
 import pytest
 import trimesh
+from PIL import Image
 
 from dvr.cameras import load_cameras
-from dvr.metrics import chamfer_fscore, umeyama
+from dvr.data import list_images
+from dvr.metrics import chamfer_fscore, masked_psnr, pose_errors, umeyama
 from pipeline.cli import main
 from pipeline.synth import load_scene_file, write_scene
+from pipeline.synth.phone import upright_roll, write_phone_folder
 from pipeline.texture import render_textured
+from pipeline.workspace import subset_workspace
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.slow
+TURN = {1: None, 6: cv2.ROTATE_90_CLOCKWISE, 3: cv2.ROTATE_180, 8: cv2.ROTATE_90_COUNTERCLOCKWISE}
 
 
 def _centres(c):
     return c.centers @ c.scale_mat[:3, :3].T + c.scale_mat[:3, 3]
 
 
-def test_photos_to_textured_mesh(tmp_path):
+def _upright(img, flag):
+    return img if TURN[flag] is None else cv2.rotate(img, TURN[flag])
+
+
+def _phone_folder(syn, root):
+    """The phone's folder (spaces in its path) and, per photo stem, (GT view or held-out index, EXIF flag)."""
+    photos = write_phone_folder(syn / "images", root / "my phone photos", upscale_every=0)
+    flags = json.loads((root / "phone_flags.json").read_text())
+    truth = {stem: ("train", int(r["source"]), r["flag"]) for stem, r in flags.items()}
+    for stem, fmt in (("IMG 000003", "heic"), ("IMG 000005", "png16"), ("IMG 000007", "rgba")):
+        src = photos / f"{stem}.jpg"
+        up = cv2.imread(str(src), cv2.IMREAD_COLOR)  # upright pixels (EXIF applied); PNG/HEIC carry no flag here
+        src.unlink()
+        if fmt == "heic":
+            from pillow_heif import register_heif_opener
+
+            register_heif_opener()
+            Image.fromarray(cv2.cvtColor(up, cv2.COLOR_BGR2RGB)).save(photos / f"{stem}.heic", quality=95)
+        elif fmt == "png16":
+            cv2.imwrite(str(photos / f"{stem}.png"), up.astype(np.uint16) * 257)
+        else:
+            cv2.imwrite(str(photos / f"{stem}.png"), np.dstack([up, np.full(up.shape[:2], 255, np.uint8)]))
+    for p in sorted((syn / "gt" / "heldout" / "images").glob("*.png")):
+        shutil.copy(p, photos / f"heldout_{p.stem}.png")
+        truth[f"heldout_{p.stem}"] = ("heldout", int(p.stem), 1)
+    return photos, truth
+
+
+def test_phone_folder_on_a_floor_to_textured_mesh(tmp_path):
     syn = tmp_path / "synthetic"
-    write_scene(load_scene_file(ROOT / "configs" / "scenes" / "torus_smooth_backdrop.yaml"), syn)
-    ws = tmp_path / "ws"
+    write_scene(load_scene_file(ROOT / "configs" / "scenes" / "e2e_floor.yaml"), syn)
+    photos, truth = _phone_folder(syn, tmp_path)
+    full, ws = tmp_path / "all photos", tmp_path / "trained"
     cfg = ["--config", str(ROOT / "configs" / "default.yaml")]
-    assert main(["cameras", str(ws), "--images", str(syn / "images"), *cfg]) == 0
-    assert main(["masks", str(ws), *cfg]) == 0
-    assert main(["depth", str(ws), *cfg]) == 0
+    assert main(["cameras", str(full), "--images", str(photos), *cfg]) == 0
+    assert main(["masks", str(full), *cfg]) == 0
+    assert main(["depth", str(full), *cfg]) == 0
+    names = [p.stem for p in list_images(full / "images")]
+    assert sorted(names) == sorted(truth)  # every photo registered, every format read
+    gt_cams, held_cams = load_cameras(syn / "cameras.npz"), load_cameras(syn / "gt" / "heldout" / "cameras.npz")
+
+    def gt_of(stem):
+        kind, i, flag = truth[stem]
+        c = gt_cams if kind == "train" else held_cams
+        return _centres(c)[i], upright_roll(c.R[i], flag), c, i, flag
+
+    # poses, the rolled portrait cameras included; per-view image sizes
+    est = load_cameras(full / "cameras.npz")
+    gc = np.stack([gt_of(n)[0] for n in names])
+    err = pose_errors(_centres(est), est.R, gc, np.stack([gt_of(n)[1] for n in names]))
+    assert err["center_err_rel_max"] <= 0.01 and err["rot_err_deg_max"] < 1.0, err
+    sizes = {cv2.imread(str(full / "images" / f"{n}.png")).shape[:2] for n in names}
+    assert sizes == {(240, 320), (320, 240)}
+    # the support plane, against the GT floor
+    s, R, t = umeyama(gc, _centres(est))  # GT world → SfM frame
+    plane = np.load(full / "cameras.npz")["ground_plane"]
+    gt_plane = json.loads((syn / "gt" / "scene.json").read_text())["ground_plane"]
+    assert np.degrees(np.arccos(np.clip(plane[:3] @ (R @ gt_plane[:3]), -1, 1))) < 2.0
+
+    # masks against the GT masks of the object, turned like the photos; without the plane the floor is taken
+    def iou(folder):
+        out = []
+        for n in names:
+            kind, i, flag = truth[n]
+            g = syn / "gt" / ("masks" if kind == "train" else "heldout/masks") / f"{i:06d}.png"
+            b = _upright(cv2.imread(str(g), 0), flag) > 127
+            a = cv2.imread(str(folder / "masks" / f"{n}.png"), 0) > 127
+            b = b[: a.shape[0], : a.shape[1]]
+            out.append((a & b).sum() / (a | b).sum())
+        return float(np.mean(out))
+
+    flat = tmp_path / "without the plane"
+    shutil.copytree(full, flat, ignore=shutil.ignore_patterns("masks", "depth", ".stages"))
+    z = dict(np.load(flat / "cameras.npz"))
+    z.pop("ground_plane")
+    np.savez(flat / "cameras.npz", **z)
+    assert main(["masks", str(flat), *cfg]) == 0
+    with_plane, without = iou(full), iou(flat)
+    print(json.dumps({"mask_iou": with_plane, "mask_iou_without_plane": without}))
+    assert with_plane >= 0.95 and without < 0.9
+
+    # train on the training photos, mesh, texture, report
+    subset_workspace(full, ws, [k for k, n in enumerate(names) if not n.startswith("heldout_")])
     assert main(["train", str(ws), *cfg, "--train.no-progress"]) == 0
     assert main(["mesh", str(ws), *cfg]) == 0
-    assert main(["texture", str(ws), *cfg, "--texture.size", "1024"]) == 0
-
-    est, gt_cams = load_cameras(ws / "cameras.npz"), load_cameras(syn / "cameras.npz")
-    s, R, t = umeyama(_centres(gt_cams), _centres(est))  # GT world → SfM frame
+    assert main(["texture", str(ws), *cfg]) == 0
+    assert main(["report", str(ws)]) == 0
     gt = trimesh.load(syn / "gt" / "mesh.ply")
     gt.apply_transform(np.block([[s * R, t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
     pred = trimesh.load(ws / "mesh" / "clean.ply")
     geo = chamfer_fscore(pred, gt, n=50000)
-
     tm = trimesh.load(ws / "mesh" / "textured.glb", force="mesh")
     tex = np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
-    hc = load_cameras(syn / "gt" / "heldout" / "cameras.npz")
-    K_est = est.K.mean(0)  # one camera: SfM's shared intrinsics
-    psnrs, psnrs_gt_focal = [], []
-    for i in range(len(hc)):
-        Rg = hc.R[i] @ R.T  # the held-out camera in the SfM frame
-        cg = s * R @ _centres(hc)[i] + t
-        h, w = 240, 320
-        photo = cv2.cvtColor(cv2.imread(str(syn / "gt" / "heldout" / "images" / f"{i:06d}.png")), cv2.COLOR_BGR2RGB)
-        gmask = cv2.imread(str(syn / "gt" / "heldout" / "masks" / f"{i:06d}.png"), 0) > 127
-        for K, out in ((K_est, psnrs), (hc.K[i], psnrs_gt_focal)):
-            img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, Rg, cg, w, h)
-            m = gmask | hit  # the object's pixels, in the photo or in the rendering
-            out.append(-10 * np.log10(((img - photo / 255.0)[m] ** 2).mean()))
-    print(json.dumps({**geo, "focal_est": K_est[0, 0], "focal_gt": hc.K[0][0, 0],
-                      "psnr_heldout": [round(p, 2) for p in psnrs],
-                      "psnr_heldout_gt_focal": [round(p, 2) for p in psnrs_gt_focal]}))
-    assert geo["chamfer_rel"] <= 0.02
-    assert geo["fscore"] >= 0.9
-    assert np.mean(psnrs) >= 25.0
-    assert np.mean(psnrs_gt_focal) >= 23.0
+    psnr = []
+    for k, n in enumerate(names):
+        if not n.startswith("heldout_"):
+            continue
+        photo = cv2.cvtColor(cv2.imread(str(photos / f"{n}.png")), cv2.COLOR_BGR2RGB) / 255.0
+        gmask = cv2.imread(str(syn / "gt" / "heldout" / "masks" / f"{truth[n][1]:06d}.png"), 0) > 127
+        img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, est.K[k], est.R[k], _centres(est)[k],
+                                   photo.shape[1], photo.shape[0])
+        psnr.append(masked_psnr(img, photo, gmask | hit))
+    print(json.dumps({**geo, "psnr_heldout": [round(p, 2) for p in psnr]}))
+    assert pred.is_watertight
+    assert geo["chamfer_rel"] <= 0.01 and geo["fscore"] >= 0.95
+    assert np.mean(psnr) >= 24.0
+    assert "support plane" in (ws / "report.html").read_text()

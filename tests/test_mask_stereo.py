@@ -38,7 +38,7 @@ def camo(tmp_path_factory):
 
 def test_labels_agree_with_ground_truth(camo):
     _, cams, imgs, gt = camo
-    lab = stereo_seed_labels(imgs, cams, background_depths(cams, None, None, [""] * len(imgs)))
+    lab = np.stack(stereo_seed_labels(imgs, cams, background_depths(cams, None, None, [""] * len(imgs))))
     assert lab.shape == gt.shape and lab.dtype == np.uint8
     obj, bg = lab == OBJECT, lab == BACKGROUND
     assert (obj & gt).sum() / obj.sum() >= 0.98  # object labels lie on the object

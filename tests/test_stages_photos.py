@@ -278,3 +278,13 @@ def test_pinhole_replaces_distortion_that_explains_nothing_real_distortion_stays
     assert next(iter(out.cameras.values())).params[3] == 0.05 and "kept" in notes[0]
     out, notes = prefer_pinhole(_synthetic_model(1e-4), -1.0)  # negative disables the check
     assert next(iter(out.cameras.values())).params[3] == 1e-4 and notes == []
+
+
+def test_floating_object_has_no_support_plane(photo_ws):
+    """The torus floats in front of its backdrop: no plane carries it, and every stage behaves as before."""
+    import json
+
+    syn, ws = photo_ws
+    assert "ground_plane" not in np.load(ws / "cameras.npz").files
+    assert load_cameras(ws / "cameras.npz").ground is None
+    assert json.loads((ws / ".stages" / "cameras.json").read_text())["support"] is None

@@ -135,3 +135,58 @@ def test_mesh_up_axis(tmp_path):
     assert np.allclose(ey, ez[[0, 2, 1]], atol=1e-6)  # y and z extents swap
     with pytest.raises(ValueError, match="up"):
         MeshShape(Shape(kind="mesh", path=str(SHARED / "meshes/cow/cow.obj"), up="x"), ".")
+
+
+# ----------------------------------------------------------------------------- the ground effect
+def test_ground_effect_object_rests_on_a_plane_masks_and_mesh_object_only(tmp_path):
+    ball = {"kind": "sphere", "radius": 0.5}
+    base = dict(shape=ball, lighting={"kind": "lambertian"}, background={"kind": "constant", "color": [0, 0, 1]},
+                cameras={"elevation": [20, 40]})
+    meta = write_scene(small_scene(**base, effects=[{"kind": "ground", "pattern": "checker", "scale": 4.0}]),
+                       tmp_path / "g")
+    assert "effect:ground" in meta["passes"] and "ground_shadows" in meta["passes"]
+    n, d = np.array(meta["ground_plane"][:3]), meta["ground_plane"][3]
+    assert np.allclose(n, [0, 0, 1]) and -d == pytest.approx(-0.5 + 0.004, abs=0.003)  # touches the ball's bottom
+    write_scene(small_scene(**base), tmp_path / "f")
+    for i in range(8):
+        mg = cv2.imread(str(tmp_path / "g" / "masks" / f"{i:06d}.png"), 0) > 127
+        mf = cv2.imread(str(tmp_path / "f" / "masks" / f"{i:06d}.png"), 0) > 127
+        assert (mg != mf).sum() <= 2  # the object alone (all but the sliver sunk into the plane)
+        img = _img(tmp_path / "g", i)
+        ground = ~mg & (np.abs(img - [0, 0, 1]).sum(-1) > 0.05)  # neither object nor the blue backdrop
+        assert ground.mean() > 0.2  # the plane runs under and around the object
+    gt = trimesh.load(tmp_path / "g" / "gt" / "mesh.ply")
+    assert np.linalg.norm(gt.vertices, axis=1).max() < 0.51  # the object alone
+    unlit = {**base, "lighting": {"kind": "none"}}
+    ground_only = write_scene(small_scene(**unlit, effects=[{"kind": "ground", "pattern": "wood"}]), tmp_path / "n")
+    assert "ground_shadows" not in ground_only["passes"]  # no lighting: no shadows computed
+
+
+def test_ground_patterns_and_soft_contact_shadow():
+    from pipeline.synth.ground import ground_albedo, ground_shading
+    from pipeline.synth.scene import Effect
+
+    xy = np.random.default_rng(0).uniform(-2, 2, (5000, 2))
+    for pattern in ("wood", "tiles", "checker", "noise"):
+        a = ground_albedo(xy, Effect(kind="ground", pattern=pattern))
+        assert a.shape == (5000, 3) and a.min() >= 0 and a.max() <= 1 and a.std() > 0.03, pattern
+    with pytest.raises(ValueError, match="pattern"):
+        ground_albedo(xy, Effect(kind="ground", pattern="marble"))
+    e = Effect(kind="ground", shadow=0.6, softness=0.1)
+    centre, r = np.array([0.0, 0.0, 0.5]), 0.5  # a ball resting on z = 0
+
+    def occluded(o, d):
+        oc = o - centre
+        b = (oc * d).sum(1)
+        disc = b * b - ((oc * oc).sum(1) - r * r)
+        return (disc > 0) & (-b + np.sqrt(np.clip(disc, 0, None)) > 0)
+
+    def distance(p):
+        return np.linalg.norm(p - centre, axis=1) - r
+
+    pts = np.array([[0.05, 0.0, 0.0], [0.3, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 0.0 + 0.9, 0.0]])
+    light = [[0.0, -1.0, 1.0, 0.8]]  # from −y, 45° up: the ball's shadow falls towards +y
+    s = ground_shading(pts, light, 0.4, e, occluded, distance)
+    assert s[0] < s[1] < s[2]  # darker towards the contact point
+    assert s[3] < s[2] - 0.3  # inside the cast shadow
+    assert s[2] == pytest.approx(0.4 + 0.8 / np.sqrt(2), abs=1e-3)  # far away: ambient + cos · intensity

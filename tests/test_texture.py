@@ -80,7 +80,7 @@ def test_smooth_texture_baked_back_near_lossless(tmp_path):
             for p in sorted((tmp_path / "images").glob("*.png"))]
     cfg = TextureConfig(size=1024)
     nv, nf, uvs, tex, stats = texture_mesh(np.asarray(gt.vertices), np.asarray(gt.faces), imgs, cams, cfg, None)
-    fid = rasterize_atlas(uvs, nf, cfg.size)
+    fid = rasterize_atlas(uvs, nf, tex.shape[0])
     r, c, pts, _ = texel_geometry(fid, uvs, nf, nv, np.ones_like(nv))
     oracle = np.zeros_like(tex)
     oracle[r, c] = albedo_of(sc, pts, None, None)

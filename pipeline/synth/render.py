@@ -27,7 +27,8 @@ from skimage import measure
 from dvr.cameras import save_cameras, sphere_bounds
 
 from ..raycast import mesh_intersector
-from .scene import Scene, Shape
+from .ground import ground_albedo, ground_shading, plane_hits
+from .scene import Effect, Scene, Shape
 
 
 # ----------------------------------------------------------------------------- shapes
@@ -45,13 +46,17 @@ def sdf(shape: Shape, p: torch.Tensor) -> torch.Tensor:
     if k == "torus":
         xy = q[:, :2].norm(dim=-1) - shape.radius
         return torch.stack([xy, q[:, 2]], -1).norm(dim=-1) - shape.minor
+    if k == "cylinder":  # upright, radius, half height size[2], edges rounded by minor
+        r = shape.minor
+        dd = torch.stack([q[:, :2].norm(dim=-1) - (shape.radius - r), q[:, 2].abs() - (shape.size[2] - r)], -1)
+        return dd.max(dim=-1).values.clamp_max(0) + dd.clamp_min(0).norm(dim=-1) - r
     if k == "shell":
         return (q.norm(dim=-1) - (shape.radius - shape.minor / 2)).abs() - shape.minor / 2
     if k == "union":
         if not shape.parts:
             raise ValueError("union shape needs parts")
         return torch.stack([sdf(Shape(**d), p) for d in shape.parts]).min(dim=0).values
-    raise ValueError(f"unknown analytic shape '{k}' (sphere, box, torus, shell, union, mesh)")
+    raise ValueError(f"unknown analytic shape '{k}' (sphere, box, torus, cylinder, shell, union, mesh)")
 
 
 class MeshShape:
@@ -161,7 +166,8 @@ def albedo_of(scene: Scene, pts: np.ndarray, uv: np.ndarray | None, tex: np.ndar
         k = np.floor(pts * a.scale).sum(1).astype(int) % 2
         return np.where(k[:, None] == 0, np.asarray(a.color), np.asarray(a.color2))
     if a.kind == "noise":
-        return procedural_noise(pts, a.scale, a.seed, a.levels)
+        c = np.asarray(a.color, float)
+        return c + a.contrast * (procedural_noise(pts, a.scale, a.seed, a.levels) - c)
     if a.kind == "texture":
         if uv is None or tex is None:
             raise ValueError("albedo 'texture' needs a mesh shape with UVs and a texture image")
@@ -220,97 +226,168 @@ def camera_rig(scene: Scene, heldout: bool = False):
 
 
 # ----------------------------------------------------------------------------- rendering
-def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: list[str], view_seed: int = 0):
-    """Render views: images (N,H,W,3) float, masks (N,H,W) bool, depth (N,H,W) canonical ray depth."""
-    rig = scene.cameras
-    H, W = rig.height, rig.width
-    ss = int(rig.supersample)
+def object_tracer(scene: Scene, mesh_shape: MeshShape | None, need_normals: bool):
+    """``trace(o, d)`` → first object hits (hit, depth, point, normal or None, uv or None) of rays (M, 3)."""
+    def trace(o: np.ndarray, d: np.ndarray):
+        if mesh_shape is not None:
+            return mesh_shape.cast(o, d)
+        hit_t, t = sphere_trace(scene.shape, torch.from_numpy(o), torch.from_numpy(d))
+        hit, depth = hit_t.numpy(), t.numpy()
+        pts = o + depth[:, None] * d
+        nrm = None
+        if need_normals:
+            nrm = np.zeros_like(pts)
+            nrm[hit] = sdf_normals(scene.shape, torch.from_numpy(pts[hit])).numpy()
+        return hit, depth, pts, nrm, None
+
+    return trace
+
+
+def object_occlusion(scene: Scene, mesh_shape: MeshShape | None):
+    """(occluded(o, d) → bool (M,), distance(p) → (M,)) of the object, for the ground's shadows."""
+    if mesh_shape is not None:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(trimesh.sample.sample_surface(mesh_shape.gt, 60000, seed=0)[0])
+        # beyond 6 radii the contact shadow is < 0.3 %: far queries (slow in a KD-tree) stop there
+        reach = 6 * max(e.softness for e in scene.effects if e.kind == "ground")
+        return mesh_shape.intersector.intersects_any, lambda p: tree.query(p, distance_upper_bound=reach, workers=-1)[0]
+    return (lambda o, d: sphere_trace(scene.shape, torch.from_numpy(o), torch.from_numpy(d))[0].numpy(),
+            lambda p: sdf(scene.shape, torch.from_numpy(p)).numpy())
+
+
+def shade_object(scene: Scene, listed: dict, col: np.ndarray, nrm: np.ndarray | None, d: np.ndarray) -> np.ndarray:
+    """Albedo ``col`` (M, 3) of object points lit by the scene's lights (and specular highlights when listed)."""
+    if scene.lighting.kind == "lambertian":
+        shade = np.full(len(col), scene.lighting.ambient)
+        for lx, ly, lz, li in scene.lighting.lights:
+            ldir = np.array([lx, ly, lz]) / np.linalg.norm([lx, ly, lz])
+            shade += li * np.clip(nrm @ ldir, 0, None)
+        col = col * shade[:, None]
+    elif scene.lighting.kind != "none":
+        raise ValueError(f"unknown lighting '{scene.lighting.kind}' (none, lambertian)")
+    if "specular" in listed:
+        e = listed["specular"]
+        for lx, ly, lz, li in (scene.lighting.lights or [[0.4, 0.5, 0.8, 1.0]]):
+            ldir = np.array([lx, ly, lz]) / np.linalg.norm([lx, ly, lz])
+            hv = ldir - d
+            hv /= np.linalg.norm(hv, axis=1, keepdims=True)
+            col = col + e.amount * li * np.clip((nrm * hv).sum(1), 0, None)[:, None] ** e.shininess
+    return col
+
+
+def background_colour(scene: Scene, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Colour (M, 3) of rays that see neither the object nor the ground."""
+    bg = scene.background
+    if bg.kind == "none":
+        return np.zeros_like(o)
+    if bg.kind == "constant":
+        return np.broadcast_to(np.asarray(bg.color, float), o.shape).copy()
+    if bg.kind == "backdrop":
+        b = (o * d).sum(1)
+        c2 = (o * o).sum(1) - bg.radius ** 2
+        t = -b + np.sqrt(np.clip(b * b - c2, 0, None))
+        col = procedural_noise((o + t[:, None] * d) / bg.radius, bg.scale, bg.seed, bg.levels)
+        gray = col.mean(1, keepdims=True)
+        return (gray + bg.saturation * (col - gray)) * 0.9
+    raise ValueError(f"unknown background '{bg.kind}' (none, constant, backdrop)")
+
+
+def ground_colour(scene: Scene, ground: Effect, pts: np.ndarray, occlusion) -> np.ndarray:
+    """Colour (M, 3) of ground points: the pattern, lit (with soft shadows) when the scene has lighting."""
+    col = ground_albedo(pts[:, :2], ground)
+    if scene.lighting.kind == "none":
+        return col
+    return col * ground_shading(pts, scene.lighting.lights, scene.lighting.ambient, ground, *occlusion)[:, None]
+
+
+def pixel_samples(H: int, W: int, ss: int) -> tuple[np.ndarray, np.ndarray]:
+    """Homogeneous pixel coordinates of ss × ss samples per pixel (H·ss·W·ss, 3), and which sample is the
+    pixel centre (masks and depth come from it)."""
     if ss < 1 or ss % 2 == 0:
-        raise ValueError(f"cameras.supersample must be an odd number ≥ 1, got {rig.supersample}")
-    # ss × ss samples per pixel (the middle one at the pixel centre: masks and depth come from it)
+        raise ValueError(f"cameras.supersample must be an odd number ≥ 1, got {ss}")
     sub = (np.arange(ss) + 0.5) / ss
     jj = (np.arange(W)[None, None, :, None] + sub[None, None, None, :]) * np.ones((H, ss, W, ss))
     ii = (np.arange(H)[:, None, None, None] + sub[None, :, None, None]) * np.ones((H, ss, W, ss))
     pix = np.stack([jj, ii, np.ones_like(jj)], -1).reshape(-1, 3)
     centre = np.zeros((H, ss, W, ss), bool)
     centre[:, ss // 2, :, ss // 2] = True
-    centre = centre.reshape(-1)
+    return pix, centre.reshape(-1)
+
+
+def image_effects(img: np.ndarray, listed: dict, rng: np.random.Generator) -> np.ndarray:
+    """Per-view camera effects on an (H, W, 3) image: exposure, blur, sensor noise (only those listed)."""
+    if "exposure" in listed:
+        img = img * (1 + rng.uniform(-1, 1) * listed["exposure"].amount)
+    if "blur" in listed:
+        img = cv2.GaussianBlur(img, (0, 0), listed["blur"].sigma)
+    if "noise" in listed:
+        img = img + rng.normal(0, listed["noise"].sigma, img.shape)
+    return np.clip(img, 0, 1)
+
+
+def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: list[str], view_seed: int = 0,
+                 ground_z: float | None = None):
+    """Render views: images (N,H,W,3) float, masks (N,H,W) bool, depth (N,H,W) canonical ray depth.
+
+    With a ``ground`` effect, ``ground_z`` is the height of its plane (canonical frame): rays that reach it before
+    the object see the ground, and masks and depth are the object's alone."""
+    rig = scene.cameras
+    H, W, ss = rig.height, rig.width, int(rig.supersample)
+    pix, centre = pixel_samples(H, W, ss)
     rng = np.random.default_rng(scene.cameras.seed + 1000 * view_seed)
     listed = {e.kind: e for e in scene.effects}
+    ground = listed.get("ground")
+    if ground is not None and ground_z is None:
+        raise ValueError("a ground effect needs the plane's height (ground_z)")
     need_normals = scene.lighting.kind != "none" or "specular" in listed
+    trace = object_tracer(scene, mesh_shape, need_normals)
+    occlusion = object_occlusion(scene, mesh_shape) if ground is not None and scene.lighting.kind != "none" else None
     imgs, masks, depths = [], [], []
     for v in range(len(K)):
         d = pix @ np.linalg.inv(K[v]).T @ R[v]
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         o = np.broadcast_to(C[v], d.shape).copy()
-        if mesh_shape is not None:
-            hit, depth, pts, nrm, uv = mesh_shape.cast(o, d)
-        else:
-            ot, dt = torch.from_numpy(o), torch.from_numpy(d)
-            hit_t, t = sphere_trace(scene.shape, ot, dt)
-            hit, depth = hit_t.numpy(), t.numpy()
-            pts = o + depth[:, None] * d
-            nrm = sdf_normals(scene.shape, torch.from_numpy(pts[hit])).numpy() if need_normals else None
-            uv = None
-            if nrm is not None:
-                full = np.zeros_like(pts)
-                full[hit] = nrm
-                nrm = full
+        hit, depth, pts, nrm, uv = trace(o, d)
+        on_ground = np.zeros(len(d), bool)
+        if ground is not None:
+            on_ground, t_ground = plane_hits(o, d, ground_z)
+            hit &= ~(on_ground & (t_ground < depth))  # what of the object lies below the plane is hidden
+            on_ground &= ~hit
         img = np.zeros((len(pix), 3))
         if hit.any():
             col = albedo_of(scene, pts[hit], None if uv is None else uv[hit], mesh_shape.texture if mesh_shape else None)
-            if scene.lighting.kind == "lambertian":
-                n = nrm[hit]
-                shade = np.full(n.shape[0], scene.lighting.ambient)
-                for lx, ly, lz, li in scene.lighting.lights:
-                    ldir = np.array([lx, ly, lz]) / np.linalg.norm([lx, ly, lz])
-                    shade += li * np.clip(n @ ldir, 0, None)
-                col = col * shade[:, None]
-            elif scene.lighting.kind != "none":
-                raise ValueError(f"unknown lighting '{scene.lighting.kind}' (none, lambertian)")
-            if "specular" in listed:
-                e = listed["specular"]
-                n = nrm[hit]
-                for lx, ly, lz, li in (scene.lighting.lights or [[0.4, 0.5, 0.8, 1.0]]):
-                    ldir = np.array([lx, ly, lz]) / np.linalg.norm([lx, ly, lz])
-                    hv = ldir - d[hit]
-                    hv /= np.linalg.norm(hv, axis=1, keepdims=True)
-                    col = col + e.amount * li * np.clip((n * hv).sum(1), 0, None)[:, None] ** e.shininess
-            img[hit] = col
-        bg = scene.background
-        if bg.kind == "constant":
-            img[~hit] = bg.color
-        elif bg.kind == "backdrop":
-            ob, db = o[~hit], d[~hit]
-            b = (ob * db).sum(1)
-            c2 = (ob * ob).sum(1) - bg.radius ** 2
-            t = -b + np.sqrt(np.clip(b * b - c2, 0, None))
-            col = procedural_noise((ob + t[:, None] * db) / bg.radius, bg.scale, bg.seed, bg.levels)
-            gray = col.mean(1, keepdims=True)
-            img[~hit] = (gray + bg.saturation * (col - gray)) * 0.9
-        elif bg.kind != "none":
-            raise ValueError(f"unknown background '{bg.kind}' (none, constant, backdrop)")
+            img[hit] = shade_object(scene, listed, col, None if nrm is None else nrm[hit], d[hit])
+        if on_ground.any():
+            img[on_ground] = ground_colour(scene, ground, o[on_ground] + t_ground[on_ground, None] * d[on_ground],
+                                           occlusion)
+        rest = ~hit & ~on_ground
+        img[rest] = background_colour(scene, o[rest], d[rest])
         img = img.reshape(H, ss, W, ss, 3).mean(axis=(1, 3))  # box filter over the pixel
         hit, depth = hit[centre], depth[centre]
-        if "exposure" in listed:
-            img = img * (1 + rng.uniform(-1, 1) * listed["exposure"].amount)
-        if "blur" in listed:
-            img = cv2.GaussianBlur(img, (0, 0), listed["blur"].sigma)
-        if "noise" in listed:
-            img = img + rng.normal(0, listed["noise"].sigma, img.shape)
-        imgs.append(np.clip(img, 0, 1))
+        imgs.append(image_effects(img, listed, rng))
         masks.append(hit.reshape(H, W))
         depths.append(np.where(hit, depth, 0.0).reshape(H, W))
-    for name, on in [(f"supersample:{ss}", ss > 1), ("normals", need_normals), (f"lighting:{scene.lighting.kind}", scene.lighting.kind != "none"),
+    _list_passes(scene, passes, ss, need_normals)
+    return np.stack(imgs), np.stack(masks), np.stack(depths)
+
+
+EFFECTS = ("noise", "exposure", "distortion", "blur", "specular", "ground")
+
+
+def _list_passes(scene: Scene, passes: list[str], ss: int, need_normals: bool) -> None:
+    """Append the passes a scene computed (what tests check: nothing it does not list)."""
+    light = scene.lighting.kind != "none"
+    for name, on in [(f"supersample:{ss}", ss > 1), ("normals", need_normals), (f"lighting:{scene.lighting.kind}", light),
                      (f"background:{scene.background.kind}", scene.background.kind != "none")]:
         if on and name not in passes:
             passes.append(name)
     for e in scene.effects:
-        if e.kind not in ("noise", "exposure", "distortion", "blur", "specular"):
-            raise ValueError(f"unknown effect '{e.kind}' (noise, exposure, distortion, blur, specular)")
-        if f"effect:{e.kind}" not in passes:
-            passes.append(f"effect:{e.kind}")
-    return np.stack(imgs), np.stack(masks), np.stack(depths)
+        if e.kind not in EFFECTS:
+            raise ValueError(f"unknown effect '{e.kind}' ({', '.join(EFFECTS)})")
+        for name in [f"effect:{e.kind}"] + (["ground_shadows"] if e.kind == "ground" and light else []):
+            if name not in passes:
+                passes.append(name)
 
 
 def distort(images: np.ndarray, masks: np.ndarray, K: np.ndarray, k1: float):
@@ -364,9 +441,12 @@ def write_scene(scene: Scene, out: str | Path) -> dict:
     for sub in ["images", "masks", "gt/depth", "gt/heldout/images", "gt/heldout/masks"]:
         (out / sub).mkdir(parents=True, exist_ok=True)
     dist = {e.kind: e for e in scene.effects}.get("distortion")
+    mesh = gt_mesh(scene, mesh_shape)
+    ground = {e.kind: e for e in scene.effects}.get("ground")
+    ground_z = float(mesh.vertices[:, 2].min()) + ground.sink if ground is not None else None
 
     def one_set(K, R, C, img_dir: Path, mask_dir: Path | None, cam_path: Path, depth_dir: Path | None, seed: int):
-        imgs, masks, depths = render_views(scene, K, R, C, mesh_shape, passes, seed)
+        imgs, masks, depths = render_views(scene, K, R, C, mesh_shape, passes, seed, ground_z)
         if dist is not None and dist.k1 != 0.0:
             imgs, masks = distort(imgs, masks, K[0], dist.k1)
         Rw = R
@@ -404,10 +484,11 @@ def write_scene(scene: Scene, out: str | Path) -> dict:
     if len(Kh):
         one_set(Kh, Rh, Ch, out / "gt/heldout/images", out / "gt/heldout/masks", out / "gt/heldout/cameras.npz",
                 None, 1)
-    mesh = gt_mesh(scene, mesh_shape)
     mesh.apply_transform(scale_mat)
     mesh.export(out / "gt" / "mesh.ply")
     meta = {"scene": asdict(scene), "passes": passes, "seconds": round(time.perf_counter() - t0, 3),
             "n_views": int(len(K)), "n_heldout": int(len(Kh))}
+    if ground_z is not None:  # the support plane n·x + d = 0 in the world frame, n pointing up (to the cameras)
+        meta["ground_plane"] = [0.0, 0.0, 1.0, -float(s * ground_z + off[2])]
     (out / "gt" / "scene.json").write_text(json.dumps(meta, indent=1))
     return meta

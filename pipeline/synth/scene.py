@@ -18,7 +18,8 @@ class Shape:
     """Geometry in the canonical frame (object inside the unit sphere)."""
 
     kind: str = "torus"
-    """sphere | box | torus | shell | union | mesh."""
+    """sphere | box | torus | cylinder (upright, half height size[2], edges rounded by minor) | shell | union |
+    mesh."""
     radius: float = 0.5
     """sphere radius; torus major radius; shell outer radius."""
     minor: float = 0.2
@@ -49,6 +50,8 @@ class Albedo:
     """checker cells / noise frequency per unit length."""
     levels: int = 0
     """noise: quantise to this many levels per channel (sharp edges for SfM; 0 = smooth)."""
+    contrast: float = 1.0
+    """noise: 1 = the full colour noise; below 1 it is blended towards ``color`` (a weakly textured surface)."""
     seed: int = 1
 
 
@@ -81,11 +84,27 @@ class Lighting:
 class Effect:
     kind: str = "noise"
     """noise (sigma) | exposure (amount: max relative gain change) | distortion (k1) | blur (sigma px) |
-    specular (amount, shininess)."""
+    specular (amount, shininess) | ground (pattern, scale, color, color2, shadow, softness, sink, seed: a plane
+    the object rests on, see ``ground.py``)."""
     sigma: float = 0.01
     amount: float = 0.2
     k1: float = 0.0
     shininess: float = 32.0
+    pattern: str = "wood"
+    """ground: wood | tiles | checker | noise."""
+    scale: float = 4.0
+    """ground: planks / tiles / checker cells per unit length (noise: frequency)."""
+    color: list[float] = field(default_factory=lambda: [0.55, 0.36, 0.2])
+    """ground: first colour of the pattern."""
+    color2: list[float] = field(default_factory=lambda: [0.8, 0.62, 0.42])
+    """ground: second colour of the pattern."""
+    shadow: float = 0.6
+    """ground: strength of the contact shadow (darkening of the ambient light at the object), 0..1."""
+    softness: float = 0.08
+    """ground: radius of the contact shadow (canonical units)."""
+    sink: float = 0.004
+    """ground: how far the object sinks into the plane (so it touches wherever it rests)."""
+    seed: int = 3
 
 
 @dataclass

@@ -1,0 +1,272 @@
+"""One benchmark run (in its own process): a synthetic scene or DTU through the same CLI a user runs, measured.
+
+Synthetic scenes, GT cameras: the scene's images, GT masks and cameras go straight to training. Synthetic scenes
+and DTU through SfM ("photos only"): the training AND held-out photos go through cameras → masks → depth together
+(as a user's folder would; the standard protocol of NeRF-style evaluations on COLMAP poses), training sees the
+training views only, and the textured mesh is rendered at the poses SfM gave the held-out photos. For synthetic
+scenes the held-out PSNR at the GT poses (mapped into the SfM frame by a Sim(3) of the camera centres, with SfM's
+focal length) is kept too: it adds the pose error to the picture. Geometry: Chamfer and F-score@1 % of the GT
+diagonal after that Sim(3); automatic masks: IoU against the GT masks.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.workspace import subset_workspace
+
+ROOT = Path(__file__).resolve().parents[1]
+RUNS = ROOT / "bench" / "runs"
+DTU = ROOT.parent / "shared" / "data" / "dtu_scan24"
+SCENES = {
+    "cow": ROOT / "configs" / "scenes" / "cow_floor.yaml",
+    "jar": ROOT / "configs" / "scenes" / "jar_floor.yaml",
+    "book": ROOT / "configs" / "scenes" / "book_floor.yaml",
+    "cow_float": ROOT / "configs" / "scenes" / "cow_backdrop.yaml",
+    "sphere": ROOT / "configs" / "scenes" / "sphere_checker.yaml",
+}
+HELDOUT = "heldout_"
+"""Prefix of the held-out photos in a photos-only run's folder (sorted after the training photos)."""
+
+
+def scene(name: str, over: dict) -> Path:
+    """Render (once, cached in bench/runs/scenes) the synthetic scene with overrides; returns its folder."""
+    import yaml
+
+    from pipeline.synth import scene_from_dict, write_scene
+
+    tag = name + ("-" + "-".join(f"{k}{sorted(v.items()) if isinstance(v, dict) else v}" for k, v in over.items())
+                  if over else "")
+    tag = "".join(c if c.isalnum() or c in "-_" else "_" for c in tag)
+    out = RUNS / "scenes" / tag
+    if not (out / "gt" / "scene.json").exists():
+        d = yaml.safe_load(SCENES[name].read_text())
+        for k, v in over.items():
+            d[k] = {**d.get(k, {}), **v} if isinstance(v, dict) else v
+        shutil.rmtree(out, ignore_errors=True)
+        write_scene(scene_from_dict(d, SCENES[name].parent), out)
+    return out
+
+
+def cli(args: list[str]) -> None:
+    from pipeline.cli import main
+
+    if main(args) != 0:
+        raise RuntimeError(f"stage failed: {' '.join(args[:2])}")
+
+
+def _pairs(ov: list[str], prefix: str) -> list[str]:
+    """The (option, value) pairs of ``ov`` whose option starts with ``prefix``."""
+    return [x for i in range(0, len(ov), 2) if ov[i].startswith(prefix) for x in ov[i : i + 2]]
+
+
+def textured(ws: Path):
+    """The textured GLB of a workspace: trimesh mesh and its texture (float RGB)."""
+    import trimesh
+
+    tm = trimesh.load(ws / "mesh" / "textured.glb", force="mesh")
+    return tm, np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
+
+
+def sfm_centres(c) -> np.ndarray:
+    """Camera centres of a Cameras in its SfM frame."""
+    return c.centers @ c.scale_mat[:3, :3].T + c.scale_mat[:3, 3]
+
+
+def photos_folder(syn: Path, out: Path) -> Path:
+    """A user's folder: the scene's training photos and its held-out photos (prefixed ``heldout_``)."""
+    out.mkdir(parents=True)
+    for p in sorted((syn / "images").glob("*.png")):
+        shutil.copy2(p, out / p.name)
+    for p in sorted((syn / "gt" / "heldout" / "images").glob("*.png")):
+        shutil.copy2(p, out / f"{HELDOUT}{p.name}")
+    return out
+
+
+def mask_iou(ws: Path, gt_masks: dict[str, Path]) -> float:
+    """Mean IoU of a workspace's masks against GT masks (by stem; undistortion may crop ≤ 1 px)."""
+    import cv2
+
+    ious = []
+    for stem, gp in gt_masks.items():
+        mp = ws / "masks" / f"{stem}.png"
+        if not mp.exists():
+            continue
+        a = cv2.imread(str(mp), 0) > 127
+        b = cv2.imread(str(gp), 0) > 127
+        b = b[: a.shape[0], : a.shape[1]]
+        ious.append((a & b).sum() / max(1, (a | b).sum()))
+    return float(np.mean(ious)) if ious else float("nan")
+
+
+def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR of the textured mesh at a camera against a photo, over ``mask`` ∪ the mesh's pixels."""
+    from dvr.metrics import masked_psnr
+    from pipeline.texture import render_textured
+
+    h, w = photo.shape[:2]
+    img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, R, centre, w, h)
+    return masked_psnr(img, photo, mask | hit)
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    import cv2
+
+    return cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB) / 255.0
+
+
+def _read_mask(path: Path) -> np.ndarray:
+    import cv2
+
+    return cv2.imread(str(path), 0) > 127
+
+
+def train_mesh_texture(ws: Path, cfg: list[str], cli_over: list[str]) -> None:
+    cli(["train", str(ws), *cfg, "--train.no-progress", *_pairs(cli_over, "--train")])
+    cli(["mesh", str(ws), *cfg, *_pairs(cli_over, "--mesh")])
+    cli(["texture", str(ws), *cfg, *_pairs(cli_over, "--texture")])
+
+
+def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
+    """A synthetic scene end to end (GT cameras and masks, or photos only through SfM), measured."""
+    import trimesh
+
+    from dvr.cameras import load_cameras
+    from dvr.metrics import chamfer_fscore, pose_errors, umeyama
+    from pipeline.workspace import Workspace
+
+    cli_over, over = knobs.get(spec.get("knob"), ([], {}))
+    syn = scene(spec["scene"], over)
+    cfg = ["--config", str(ROOT / "configs" / f"{spec['preset']}.yaml")]
+    gtc, hc = load_cameras(syn / "cameras.npz"), load_cameras(syn / "gt" / "heldout" / "cameras.npz")
+    held = sorted((syn / "gt" / "heldout" / "images").glob("*.png"))
+    extra: dict = {}
+    if spec["cameras"] == "gt":
+        ws = work / "ws"
+        shutil.copytree(syn, ws, ignore=shutil.ignore_patterns("gt", "depth"))
+        train_mesh_texture(ws, cfg, cli_over)
+        secs = Workspace(ws).seconds()
+        s, R, t = 1.0, np.eye(3), np.zeros(3)
+        tm, tex = textured(ws)
+        psnr = [render_psnr(tm, tex, hc.K[i], hc.R[i], sfm_centres(hc)[i], _read_rgb(p),
+                            _read_mask(syn / "gt" / "heldout" / "masks" / p.name)) for i, p in enumerate(held)]
+    else:
+        full = work / "all"
+        cli(["cameras", str(full), "--images", str(photos_folder(syn, work / "photos")), *cfg])
+        cli(["masks", str(full), *cfg])
+        cli(["depth", str(full), *cfg])
+        from dvr.data import list_images
+
+        names = [p.stem for p in list_images(full / "images")]
+        gt_of = {**{f"{i:06d}": (gtc, i) for i in range(len(gtc))},
+                 **{f"{HELDOUT}{i:06d}": (hc, i) for i in range(len(hc))}}
+        est = load_cameras(full / "cameras.npz")
+        gt_c = np.stack([sfm_centres(gt_of[n][0])[gt_of[n][1]] for n in names])
+        gt_R = np.stack([gt_of[n][0].R[gt_of[n][1]] for n in names])
+        s, R, t = umeyama(gt_c, sfm_centres(est))  # GT world → SfM frame
+        extra["pose"] = pose_errors(sfm_centres(est), est.R, gt_c, gt_R)
+        extra["registered"] = f"{len(names)}/{len(gt_of)}"
+        gt_masks = {**{f"{i:06d}": syn / "gt" / "masks" / f"{i:06d}.png" for i in range(len(gtc))},
+                    **{f"{HELDOUT}{i:06d}": syn / "gt" / "heldout" / "masks" / f"{i:06d}.png" for i in range(len(hc))}}
+        extra["mask_iou"] = mask_iou(full, gt_masks)
+        extra["support"] = (Workspace(full).stamp("cameras") or {}).get("support")
+        extra["rung"] = (Workspace(full).stamp("cameras") or {}).get("rung")
+        ws = work / "ws"
+        subset_workspace(full, ws, [k for k, n in enumerate(names) if not n.startswith(HELDOUT)])
+        train_mesh_texture(ws, cfg, cli_over)
+        secs = {**Workspace(full).seconds(), **Workspace(ws).seconds()}
+        tm, tex = textured(ws)
+        psnr, psnr_gt = [], []
+        for i, p in enumerate(held):
+            k = names.index(f"{HELDOUT}{p.stem}") if f"{HELDOUT}{p.stem}" in names else None
+            photo, gm = _read_rgb(p), _read_mask(syn / "gt" / "heldout" / "masks" / p.name)
+            if k is not None:  # at the pose SfM gave the held-out photo
+                psnr.append(render_psnr(tm, tex, est.K[k], est.R[k], sfm_centres(est)[k], photo, gm))
+            psnr_gt.append(render_psnr(tm, tex, est.K.mean(0), hc.R[i] @ R.T, s * R @ sfm_centres(hc)[i] + t,
+                                       photo, gm))
+        extra["psnr_gt_pose"] = float(np.mean(psnr_gt))
+        extra["heldout_registered"] = f"{len(psnr)}/{len(held)}"
+    gt = trimesh.load(syn / "gt" / "mesh.ply")
+    gt.apply_transform(np.block([[s * R, t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    geo = chamfer_fscore(trimesh.load(ws / "mesh" / "clean.ply"), gt, n=50000)
+    return {"seconds": secs, "chamfer_rel": geo["chamfer_rel"], "fscore": geo["fscore"],
+            "psnr": float(np.mean(psnr)) if psnr else float("nan"), **extra}
+
+
+def run_cameras(spec: dict, work: Path, conditions: dict) -> dict:
+    """The cameras stage alone on a capture condition: rung, registered photos, pose error, seconds."""
+    from dvr.cameras import load_cameras
+    from dvr.data import list_images
+    from dvr.metrics import pose_errors
+    from pipeline.workspace import Workspace
+
+    name, over, prepare = conditions[spec["condition"]]
+    syn = scene(name, over)
+    photos = prepare(syn, work / "photos") if prepare else syn / "images"
+    ws = work / "ws"
+    from pipeline.cli import main
+
+    rc = main(["cameras", str(ws), "--images", str(photos)])
+    stamp = Workspace(ws).stamp("cameras") or {}
+    gtc = load_cameras(syn / "cameras.npz")
+    out = {"seconds": {"cameras": Workspace(ws).seconds().get("cameras", 0.0)}, "rung": stamp.get("rung"),
+           "rungs": stamp.get("rungs"), "stopped": rc != 0, "support": stamp.get("support")}
+    if rc != 0:
+        out["registered"] = f"0/{len(gtc)}"
+        return out
+    est = load_cameras(ws / "cameras.npz")
+    idx = [int(p.stem.split("_")[-1]) for p in list_images(ws / "images")]
+    out["registered"] = f"{len(idx)}/{len(gtc)}"
+    out["pose"] = pose_errors(sfm_centres(est), est.R, sfm_centres(gtc)[idx], gtc.R[idx])
+    return out
+
+
+def run_dtu(spec: dict, work: Path) -> dict:
+    """DTU scan24 through our SfM and automatic masks (all 49 photos), every 7th photo held out of training."""
+    from bench.dtu_reference import dtu_reference
+    from dvr.cameras import load_cameras
+    from dvr.data import list_images
+    from dvr.metrics import pose_errors
+    from pipeline.workspace import Workspace
+
+    full = RUNS / "dtu_all"
+    if not (full / ".stages" / "depth.json").exists():
+        shutil.rmtree(full, ignore_errors=True)
+        cli(["cameras", str(full), "--images", str(DTU / "images")])
+        cli(["masks", str(full)])
+        cli(["depth", str(full)])
+    cams = load_cameras(full / "cameras.npz")
+    paths = list_images(full / "images")
+    names = [p.stem for p in paths]
+    _, Rg, Cg, _ = dtu_reference(DTU)
+    idx = [int(n) for n in names]  # registered photos (all 49 when SfM registers them all)
+    pose = pose_errors(sfm_centres(cams), cams.R, Cg[idx], Rg[idx])
+    held = [i for i in range(len(names)) if i % 7 == 0]
+    ws = work / "ws"
+    subset_workspace(full, ws, [i for i in range(len(names)) if i % 7 != 0])
+    cfg = ["--config", str(ROOT / "configs" / f"{spec['preset']}.yaml")]
+    train_mesh_texture(ws, cfg, [])
+    tm, tex = textured(ws)
+    from dvr.metrics import masked_psnr
+    from pipeline.texture import render_textured
+
+    psnr, psnr_hit, cover = [], [], []
+    for i in held:
+        photo = _read_rgb(paths[i])
+        h, w = photo.shape[:2]
+        img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, cams.K[i], cams.R[i],
+                                   sfm_centres(cams)[i], w, h)
+        mask = _read_mask(full / "masks" / f"{names[i]}.png")
+        psnr.append(masked_psnr(img, photo, mask | hit))
+        psnr_hit.append(masked_psnr(img, photo, hit))
+        cover.append(float((mask & hit).sum() / max(1, mask.sum())))
+    shared = Workspace(full).seconds()
+    secs = {**shared, **{k: v for k, v in Workspace(ws).seconds().items() if k not in shared}}
+    stamp = Workspace(full).stamp("cameras") or {}
+    return {"seconds": secs, "chamfer_rel": None, "fscore": None, "psnr": float(np.mean(psnr)), "pose": pose,
+            "psnr_on_model": float(np.mean(psnr_hit)), "mask_covered": float(np.mean(cover)),
+            "registered": f"{len(names)}/49", "support": stamp.get("support"), "rung": stamp.get("rung"),
+            "views": {"train": len(names) - len(held), "heldout": len(held), "registered": len(names)}}

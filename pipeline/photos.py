@@ -1,0 +1,68 @@
+"""Reading a photo folder as it comes from a camera or a phone.
+
+Every photo is read UPRIGHT (its EXIF orientation applied: phones write portrait shots as landscape pixels plus
+a flag 6 or 8, upside-down ones with 3) as 8-bit BGR: grayscale photos become three equal channels, an alpha
+channel is dropped, 16-bit PNG/TIFF are scaled to 8 bits, HEIC/HEIF (the iPhone default) is decoded with
+pillow-heif. The same upright pixels go to SfM and to every later stage.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from dvr.data import IMAGE_EXTS as TRAINING_EXTS
+
+HEIF_EXTS = {".heic", ".heif"}
+PHOTO_EXTS = set(TRAINING_EXTS) | HEIF_EXTS
+
+
+def _read_heif(path: Path) -> np.ndarray | None:
+    try:
+        from PIL import Image, ImageOps
+        from pillow_heif import register_heif_opener
+    except ImportError:  # pragma: no cover - pillow-heif is a declared dependency
+        return None
+    register_heif_opener()
+    try:
+        with Image.open(path) as im:
+            rgb = np.asarray(ImageOps.exif_transpose(im).convert("RGB"))
+    except Exception:  # noqa: BLE001 - any decoder failure means "unreadable"
+        return None
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+
+
+def read_photo(path: str | Path) -> np.ndarray | None:
+    """(H, W, 3) uint8 BGR, upright; None when the file cannot be decoded."""
+    path = Path(path)
+    if path.suffix.lower() in HEIF_EXTS:
+        return _read_heif(path)
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)  # EXIF orientation applied
+    if img is None:
+        return None
+    if img.dtype == np.uint16:
+        img = np.round(img.astype(np.float32) / 257.0).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        img = np.clip(img.astype(np.float32) * (255.0 if img.max() <= 1.0 else 1.0), 0, 255).astype(np.uint8)
+    return img
+
+
+def is_readable(path: Path) -> bool:
+    """Cheap check that a photo decodes (JPEGs at 1/8 scale)."""
+    if path.suffix.lower() in HEIF_EXTS:
+        return _read_heif(path) is not None
+    return cv2.imread(str(path), cv2.IMREAD_REDUCED_GRAYSCALE_8) is not None or read_photo(path) is not None
+
+
+def read_upright(path: Path, max_side: int) -> np.ndarray | None:
+    """:func:`read_photo` downscaled (INTER_AREA) so its longest side ≤ ``max_side`` (never upscaled)."""
+    img = read_photo(path)
+    if img is None:
+        return None
+    h, w = img.shape[:2]
+    s = min(1.0, max_side / max(h, w))
+    if s < 1.0:
+        img = cv2.resize(img, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+    return img

@@ -1,0 +1,202 @@
+"""Structure from motion with an escalation ladder: start cheap, climb only while the model is short.
+
+Each rung is a set of COLMAP settings an expert would try next on a capture that default SIFT starves (small
+images, weakly textured objects, grazing views of a floor):
+
+1. ``default``   SIFT (8 k features), exhaustive / sequential matching, incremental mapping;
+2. ``guided``    16 k features and guided matching (matches re-searched along the epipolar lines);
+3. ``dsp``       DSP-SIFT with affine shape estimation (descriptors pooled over scales, robust to the affine
+                 distortion of slanted surfaces), guided matching;
+4. ``relaxed``   the same matches, mapper thresholds relaxed (fewer inliers to start and to register a view);
+5. ``global``    the same matches, the global mapper (GLOMAP: rotation averaging + global positioning).
+
+A rung is *short* when a photo is unregistered, the reprojection error or track length is poor, or a view has too
+few points (:func:`shortfalls`); its model then goes through the pose sanity check (:mod:`pipeline.pose_sanity`)
+and the next rung runs. The first rung without shortfalls wins; otherwise the best sane model. Features and
+matches are reused between rungs that share them. Every rung runs in a child process: a native crash inside
+COLMAP (seen in poselib on a symmetric scene) fails that rung, not the stage.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+RUNG_NAMES = ("default", "guided", "dsp", "relaxed", "global")
+
+
+@dataclass(frozen=True)
+class Rung:
+    """COLMAP settings of one rung."""
+
+    name: str
+    max_features: int = 8192
+    dsp: bool = False
+    guided: bool = False
+    relaxed: bool = False
+    mapper: str = "incremental"
+
+    @property
+    def features_key(self) -> str:
+        return f"f{self.max_features}{'-dsp' if self.dsp else ''}"
+
+    @property
+    def matches_key(self) -> str:
+        return f"{self.features_key}{'-guided' if self.guided else ''}"
+
+
+LADDER = (
+    Rung("default"),
+    Rung("guided", max_features=16384, guided=True),
+    Rung("dsp", max_features=16384, dsp=True, guided=True),
+    Rung("relaxed", max_features=16384, dsp=True, guided=True, relaxed=True),
+    Rung("global", max_features=16384, dsp=True, guided=True, mapper="global"),
+)
+
+
+def ladder(start: str, stop: str, max_features: int = 8192) -> list[Rung]:
+    """The rungs from ``start`` to ``stop`` (names of :data:`RUNG_NAMES`), in order; the first rung extracts
+    ``max_features`` features, the others at least twice that and 16 k."""
+    for name in (start, stop):
+        if name not in RUNG_NAMES:
+            raise ValueError(f"unknown SfM rung '{name}' (one of {', '.join(RUNG_NAMES)})")
+    i, j = RUNG_NAMES.index(start), RUNG_NAMES.index(stop)
+    if j < i:
+        raise ValueError(f"the last SfM rung '{stop}' comes before the first '{start}'")
+    more = max(16384, 2 * max_features)
+    return [replace(r, max_features=max_features if r.name == "default" else more) for r in LADDER[i : j + 1]]
+
+
+# ----------------------------------------------------------------------------- one rung (child process)
+def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera_model: str) -> None:
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.sift.max_num_features = rung.max_features
+    ext.sift.domain_size_pooling = rung.dsp
+    ext.sift.estimate_affine_shape = rung.dsp
+    for names in groups:  # one shared camera per image size (a phone's portrait and landscape shots: two)
+        pycolmap.extract_features(db, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=ext)
+
+
+def _match(db: Path, n_images: int, rung: Rung, matching: str) -> None:
+    import pycolmap
+
+    opts = pycolmap.FeatureMatchingOptions()
+    opts.guided_matching = rung.guided
+    if matching == "exhaustive" or (matching == "auto" and n_images <= 80):
+        pycolmap.match_exhaustive(db, matching_options=opts)
+    else:
+        pycolmap.match_sequential(db, matching_options=opts)
+
+
+def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int) -> dict:
+    import pycolmap
+
+    if rung.mapper == "global":
+        opts = pycolmap.GlobalPipelineOptions()
+        opts.random_seed = seed
+        return pycolmap.global_mapping(db, images, out, opts)
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.random_seed = seed
+    if rung.relaxed:
+        opts.min_model_size = 3
+        opts.mapper.init_min_num_inliers = 50
+        opts.mapper.init_min_tri_angle = 8.0
+        opts.mapper.abs_pose_min_num_inliers = 15
+        opts.mapper.abs_pose_min_inlier_ratio = 0.15
+    return pycolmap.incremental_mapping(db, images, out, opts)
+
+
+def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camera_model: str, matching: str,
+              seed: int) -> None:
+    """Child process: features (reused when another rung made them), matches (likewise), mapping; the largest
+    model is written to ``work/<rung>/model`` and its timings to ``work/<rung>/result.json``."""
+    r = Rung(**rung)
+    work_p, images_p = Path(work), Path(images)
+    t0 = time.perf_counter()
+    feats = work_p / f"features-{r.features_key}.db"
+    if not feats.exists():
+        tmp = feats.with_suffix(".tmp")
+        tmp.unlink(missing_ok=True)
+        _extract(tmp, images_p, groups, r, camera_model)
+        tmp.rename(feats)
+    t1 = time.perf_counter()
+    db = work_p / f"matches-{r.matches_key}.db"
+    if not db.exists():
+        tmp = db.with_suffix(".tmp")
+        shutil.copy(feats, tmp)
+        _match(tmp, sum(len(g) for g in groups), r, matching)
+        tmp.rename(db)
+    t2 = time.perf_counter()
+    out = work_p / r.name
+    shutil.rmtree(out, ignore_errors=True)
+    (out / "models").mkdir(parents=True)
+    recs = _map(db, images_p, out / "models", r, seed)
+    t3 = time.perf_counter()
+    best = max(recs.values(), key=lambda rec: rec.num_reg_images()) if recs else None
+    if best is not None:
+        (out / "model").mkdir()
+        best.write(out / "model")
+    (out / "result.json").write_text(json.dumps({"database": str(db), "seconds": {
+        "features": round(t1 - t0, 2), "matching": round(t2 - t1, 2), "mapping": round(t3 - t2, 2)}}))
+
+
+def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, camera_model: str, matching: str,
+             seed: int = 0):
+    """Run one rung in a child process (``python -m pipeline.sfm``; COLMAP's log goes to ``work/<rung>.log``);
+    returns (model or None, database path, seconds per step, error or None)."""
+    import pycolmap
+
+    args = [str(work), str(images), groups, asdict(rung), camera_model, matching, seed]
+    log = work / f"{rung.name}.log"
+    with open(log, "w") as f:
+        p = subprocess.run([sys.executable, "-m", "pipeline.sfm", json.dumps(args)], stdout=f, stderr=subprocess.STDOUT,
+                           cwd=Path(__file__).resolve().parents[1])
+    res = work / rung.name / "result.json"
+    if p.returncode != 0 or not res.exists():
+        why = f"signal {-p.returncode}" if p.returncode < 0 else f"exit code {p.returncode}"
+        return None, None, {}, f"COLMAP failed ({why}; see {log})"
+    info = json.loads(res.read_text())
+    model = work / rung.name / "model"
+    rec = pycolmap.Reconstruction(model) if model.exists() else None
+    return rec, Path(info["database"]), info["seconds"], None
+
+
+# ----------------------------------------------------------------------------- judging a model
+def model_stats(rec, names: list[str]) -> dict:
+    """Registered photos, reprojection error, track length and the median number of points a view observes."""
+    reg = [rec.image(i) for i in rec.reg_image_ids()]
+    per_view = [im.num_points3D for im in reg]
+    return {"registered": len(reg), "total": len(names),
+            "mean_reprojection_error": float(rec.compute_mean_reprojection_error()),
+            "mean_track_length": float(rec.compute_mean_track_length()), "points": int(rec.num_points3D()),
+            "median_points_per_view": float(np.median(per_view)) if per_view else 0.0}
+
+
+def shortfalls(stats: dict, max_error: float = 1.0, min_track: float = 2.5, min_points: int = 50) -> list[str]:
+    """Why a model is short (empty: good enough to stop climbing)."""
+    out = []
+    if stats["registered"] < stats["total"]:
+        out.append(f"{stats['registered']}/{stats['total']} registered")
+    if stats["mean_reprojection_error"] > max_error:
+        out.append(f"reprojection error {stats['mean_reprojection_error']:.2f} px > {max_error}")
+    if stats["mean_track_length"] < min_track:
+        out.append(f"mean track length {stats['mean_track_length']:.2f} < {min_track}")
+    if stats["median_points_per_view"] < min_points:
+        out.append(f"median {stats['median_points_per_view']:.0f} points per view < {min_points}")
+    return out
+
+
+if __name__ == "__main__":  # the child process of run_rung
+    _run_rung(*json.loads(sys.argv[1]))

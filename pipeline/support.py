@@ -1,0 +1,165 @@
+"""The support surface: the floor, table or turntable the object stands on, found in the SfM points.
+
+Every object people photograph rests on something, and that something is textured, runs beyond the frame and
+touches the object inside its bounding sphere: left alone, the masks, the sphere and the mesh take it for part
+of the object. The support is found as the plane that
+
+* holds the most sparse points (RANSAC, then a least-squares refit on its inliers), at least ``min_inliers`` and
+  ``min_fraction`` of the points around the object,
+* is roughly horizontal: its normal lies within ``max_tilt_deg`` of the capture's up direction (the direction
+  most orthogonal to every camera's x axis — photos are taken without roll, EXIF orientation applied),
+* has the cameras above it (``min_cameras_above``) and the point the cameras converge on above it, nearer than
+  ``max_height`` × the camera distance (the object stands on it where the cameras look),
+* has (almost) nothing below it near the object (``max_below`` of the points there): a table hides what lies under
+  it, while a plane through the object itself (window sills, a row of roof tiles) has points on both sides,
+* lies around the object, on several sides (its inliers within 2.5 × the object's median footprint radius of the
+  foot of the convergence point fall in at least ``min_sectors`` of 8 sectors) — a shelf or a backdrop behind the object does not —, and spreads at least about
+  as wide as the object stands (median distance from the foot ≥ 0.6 × that of the object's own points) — a plane
+  tangent to the object's rounded bottom holds only a small cap of its points.
+
+No such plane (an object held, hung, on a plain backdrop or a plain turntable top): ``None``, and every stage
+behaves as without a support.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+GROUND_BAND = 0.03
+"""Height above the support plane (normalized frame: unit-sphere radii) below which a point or a depth belongs to
+the support, not to the object (the plane's fit is good to ~0.01 radius on SfM points)."""
+
+
+@dataclass
+class SupportPlane:
+    """Plane n·x + d = 0 (unit n pointing to the cameras' side) in the SfM frame, with what was measured."""
+
+    normal: np.ndarray
+    offset: float
+    inliers: int
+    tolerance: float
+    object_height: float
+    """Height above the plane of the highest object point (SfM units)."""
+
+    @property
+    def vector(self) -> np.ndarray:
+        return np.append(self.normal, self.offset)
+
+    def height(self, points: np.ndarray) -> np.ndarray:
+        """Signed height of points (M, 3) above the plane (positive on the cameras' side)."""
+        return points @ self.normal + self.offset
+
+
+def capture_up(R: np.ndarray) -> np.ndarray:
+    """The capture's up direction from world→camera rotations (N, 3, 3): the unit vector most orthogonal to all
+    camera x axes (no roll), signed like the cameras' −y axes."""
+    x = R[:, 0, :]
+    _, vecs = np.linalg.eigh(x.T @ x)
+    up = vecs[:, 0]
+    return up if (-R[:, 1, :].sum(0)) @ up >= 0 else -up
+
+
+def _fit(points: np.ndarray) -> tuple[np.ndarray, float]:
+    c = points.mean(0)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    n = vt[2]
+    return n, -float(n @ c)
+
+
+def _sectors(points: np.ndarray, foot: np.ndarray, normal: np.ndarray, inner: float, outer: float) -> int:
+    """How many of 8 angular sectors around ``foot`` (in the plane) hold at least 3 of ``points`` at a distance
+    between ``inner`` and ``outer`` from it."""
+    helper = np.array([1.0, 0, 0]) if abs(normal[0]) < 0.9 else np.array([0, 1.0, 0])
+    e1 = np.cross(normal, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    q = points - foot
+    dist = np.linalg.norm(q, axis=1)
+    near = (dist >= inner) & (dist < outer)
+    ang = np.arctan2(q[near] @ e2, q[near] @ e1)
+    counts = np.bincount(((ang + np.pi) / (2 * np.pi) * 8).astype(int).clip(0, 7), minlength=8)
+    return int((counts >= 3).sum())
+
+
+def _plausible(n: np.ndarray, d: float, near: np.ndarray, centers: np.ndarray, target: np.ndarray, scale: float,
+               tol: float, min_cameras_above: float, max_height: float, max_below: float) -> bool:
+    """The checks of a candidate plane that need no refit: cameras above it, the target above it and near,
+    (almost) nothing below it around the object."""
+    h_target = float(target @ n + d)
+    if np.mean(centers @ n + d > 0) < min_cameras_above or not (0 < h_target < max_height * scale):
+        return False
+    around = near[np.linalg.norm(near - (target - h_target * n), axis=1) < scale]
+    return not (len(around) and np.mean(around @ n + d < -1.5 * tol) > max_below)
+
+
+def _ransac(near: np.ndarray, up: np.ndarray, tol: float, max_tilt_deg: float, iterations: int, seed: int,
+            plausible) -> tuple[tuple[np.ndarray, float] | None, int]:
+    """The roughly horizontal plane with the most inliers among those ``plausible(n, d)`` accepts."""
+    rng = np.random.default_rng(seed)
+    cos_tilt = np.cos(np.radians(max_tilt_deg))
+    best, best_count = None, 0
+    for _ in range(iterations):
+        a, b, c = near[rng.choice(len(near), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm < 1e-12:
+            continue
+        n = n / norm if n @ up >= 0 else -n / norm
+        if n @ up < cos_tilt:
+            continue
+        d = -float(n @ a)
+        count = int((np.abs(near @ n + d) < tol).sum())
+        if count > best_count and plausible(n, d):
+            best, best_count = (n, d), count
+    return best, best_count
+
+
+def find_support(points: np.ndarray, centers: np.ndarray, R: np.ndarray, target: np.ndarray,
+                 tolerance: float = 0.01, max_tilt_deg: float = 15.0, min_cameras_above: float = 0.9,
+                 max_height: float = 0.8, min_inliers: int = 30, min_fraction: float = 0.05, min_sectors: int = 3,
+                 max_below: float = 0.01, iterations: int = 2000, seed: int = 0) -> SupportPlane | None:
+    """The support plane of an object-centric capture (see the module), or None.
+
+    Args:
+        points: sparse SfM points (M, 3); centers: camera centres (N, 3); R: world→camera rotations (N, 3, 3);
+        target: the point the cameras converge on.
+        tolerance: inlier distance as a fraction of the median camera distance to ``target``.
+    """
+    if len(points) < min_inliers or len(centers) < 3:
+        return None
+    scale = float(np.median(np.linalg.norm(centers - target, axis=1)))
+    tol = tolerance * scale
+    up = capture_up(R)
+    near = points[np.linalg.norm(points - target, axis=1) < 2.0 * scale]
+    if len(near) < min_inliers:
+        return None
+
+    def plausible(n, d):
+        return _plausible(n, d, near, centers, target, scale, tol, min_cameras_above, max_height, max_below)
+
+    min_count = max(min_inliers, min_fraction * len(near))
+    best, count = _ransac(near, up, tol, max_tilt_deg, iterations, seed, plausible)
+    if best is None or count < min_count:
+        return None
+    n, d = best
+    for _ in range(3):  # refit on the inliers
+        n, d = _fit(near[np.abs(near @ n + d) < tol])
+        if n @ up < 0:
+            n, d = -n, -d
+    inl = near[np.abs(near @ n + d) < tol]
+    if len(inl) < min_count or not plausible(n, d):
+        return None
+    foot = target - float(target @ n + d) * n
+    obj = points[(points @ n + d > 2 * tol) & (np.linalg.norm(points - foot, axis=1) < scale)]
+    flat = obj - np.outer(obj @ n + d, n) - foot  # the object's points dropped onto the plane, from the foot
+    footprint = float(np.median(np.linalg.norm(flat, axis=1))) if len(obj) >= 5 else 0.0
+    # it lies around the object on several sides (a shelf behind it does not), and spreads at least as wide as the
+    # object stands (a plane tangent to the object's own rounded bottom holds a small cap of its points)
+    spread = float(np.median(np.linalg.norm(inl - foot, axis=1)))
+    if _sectors(inl, foot, n, 0.0, max(2.5 * footprint, 0.25 * scale)) < min_sectors or spread < 0.6 * footprint:
+        return None
+    height = float(np.percentile(obj @ n + d, 98)) if len(obj) >= 5 else 2 * float(target @ n + d)
+    return SupportPlane(n, d, int(len(inl)), tol, height)

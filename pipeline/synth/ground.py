@@ -1,0 +1,133 @@
+"""The ``ground`` effect: the plane the object rests on.
+
+The plane is horizontal (normal +z of the canonical frame) at the object's lowest point plus ``sink`` (the object
+sinks that far into it, so it touches everywhere it rests), runs beyond every frame (an infinite plane: rays that
+reach it never see the backdrop), and hides whatever of the object lies below it. Its albedo is a procedural
+pattern of the plane coordinates (``wood`` planks, ``tiles`` with grout, ``checker``, quantised ``noise``). With
+lighting on it is shaded by the scene's lights with a soft shadow: each light is an area light sampled by a fixed
+set of directions (the same in every view, so the shadow is part of the floor, as a real one is), and the ambient
+term is darkened near the object (a contact shadow, ``shadow`` strength, ``softness`` radius).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .scene import Effect
+
+PATTERNS = ("wood", "tiles", "checker", "noise")
+LIGHT_RADIUS = 0.06
+"""Angular radius (rad) of the area light behind each directional light: the penumbra of the shadows."""
+LIGHT_SAMPLES = 6
+"""Directions per light for the soft shadow (fixed, so every view sees the same shadow)."""
+
+
+def plane_hits(origins: np.ndarray, dirs: np.ndarray, z0: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rays (M, 3) that reach the plane z = z0 from above, and their depth (inf where they do not)."""
+    down = (dirs[:, 2] < -1e-12) & (origins[:, 2] > z0)
+    t = np.full(len(origins), np.inf)
+    t[down] = (z0 - origins[down, 2]) / dirs[down, 2]
+    return down, t
+
+
+def _hash(ij: np.ndarray, seed: int, k: int = 0) -> np.ndarray:
+    """Deterministic pseudo-random values in [0, 1) per integer cell (M, 2)."""
+    v = np.sin(ij[:, 0] * 12.9898 + ij[:, 1] * 78.233 + seed * 37.719 + k * 4.581) * 43758.5453
+    return v - np.floor(v)
+
+
+def _wood(xy: np.ndarray, e: Effect, c1: np.ndarray, c2: np.ndarray) -> np.ndarray:
+    """Planks along x (1/scale wide, 4/scale long, staggered joints), grain streaks, dark seams."""
+    w = 1.0 / e.scale
+    row = np.floor(xy[:, 1] / w)
+    off = _hash(np.stack([row, row], 1), e.seed, 1) * 4 * w
+    col = np.floor((xy[:, 0] + off) / (4 * w))
+    cell = np.stack([row, col], 1)
+    v = xy[:, 1] / w - row  # across the plank, [0, 1)
+    u = (xy[:, 0] + off) / (4 * w) - col  # along it
+    phase = _hash(cell, e.seed, 2) * 6.28
+    wobble = 0.08 * np.sin(6.28 * (1.3 * u + phase)) + 0.03 * np.sin(6.28 * (5.1 * u + 2 * phase))
+    grain = 0.5 + 0.5 * np.sin(6.28 * (7.0 + 5 * _hash(cell, e.seed, 3)) * (v + wobble))
+    tone = 0.8 + 0.4 * _hash(cell, e.seed, 4)
+    # fibres: noise stretched along the plank, and a knot here and there
+    from .render import procedural_noise
+
+    fibre = procedural_noise(np.stack([xy[:, 0] * 0.25, xy[:, 1] * 3.0, row], 1), 6.0 * e.scale, e.seed, 0)[:, 0]
+    knot_c = np.stack([_hash(cell, e.seed, 5), _hash(cell, e.seed, 6)], 1)
+    knot = np.hypot((u - 0.15 - 0.7 * knot_c[:, 0]) * 4, (v - 0.25 - 0.5 * knot_c[:, 1]) * 1.0)
+    knot = (knot < 0.12) & (_hash(cell, e.seed, 7) < 0.5)
+    out = (c1 + (c2 - c1) * grain[:, None] ** 2) * (tone * (0.7 + 0.6 * fibre))[:, None]
+    out[knot] *= 0.45
+    seam = (np.minimum(v, 1 - v) < 0.04) | (np.minimum(u, 1 - u) * 4 < 0.03)
+    out[seam] *= 0.35
+    return out
+
+
+def _tiles(xy: np.ndarray, e: Effect, c1: np.ndarray, c2: np.ndarray) -> np.ndarray:
+    """Square tiles (1/scale) of random tints between the two colours, light grout between them."""
+    ij = np.floor(xy * e.scale)
+    f = xy * e.scale - ij
+    t = _hash(ij, e.seed)
+    out = c1 + (c2 - c1) * t[:, None]
+    out = out * (0.85 + 0.3 * _hash(ij, e.seed, 1))[:, None]
+    grout = np.minimum(f, 1 - f).min(1) < 0.05
+    out[grout] = 0.85
+    return out
+
+
+def ground_albedo(xy: np.ndarray, e: Effect) -> np.ndarray:
+    """Albedo (M, 3) in [0, 1] of the ground at plane coordinates (M, 2)."""
+    c1, c2 = np.asarray(e.color, float), np.asarray(e.color2, float)
+    if e.pattern == "wood":
+        out = _wood(xy, e, c1, c2)
+    elif e.pattern == "tiles":
+        out = _tiles(xy, e, c1, c2)
+    elif e.pattern == "checker":
+        k = (np.floor(xy[:, 0] * e.scale) + np.floor(xy[:, 1] * e.scale)).astype(int) % 2
+        out = np.where(k[:, None] == 0, c1, c2)
+    elif e.pattern == "noise":  # blocky stone-like tones between the two colours, a little colour variation
+        from .render import procedural_noise
+
+        n = procedural_noise(np.concatenate([xy, np.zeros((len(xy), 1))], 1), e.scale, e.seed, 4)
+        out = c1 + (c2 - c1) * (0.8 * n[:, :1] + 0.2 * n)
+    else:
+        raise ValueError(f"unknown ground pattern '{e.pattern}' ({', '.join(PATTERNS)})")
+    return np.clip(out, 0.0, 1.0)
+
+
+def light_directions(direction: np.ndarray, n: int = LIGHT_SAMPLES, radius: float = LIGHT_RADIUS) -> np.ndarray:
+    """``n`` fixed unit directions spread over a cone of half-angle ``radius`` around ``direction``
+    (a Fibonacci spiral over the disc), (n, 3)."""
+    a = direction / np.linalg.norm(direction)
+    helper = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 1.0, 0])
+    b1 = np.cross(a, helper)
+    b1 /= np.linalg.norm(b1)
+    b2 = np.cross(a, b1)
+    k = np.arange(n) + 0.5
+    r = radius * np.sqrt(k / n)
+    phi = k * 2.39996323  # golden angle
+    out = a[None] + r[:, None] * (np.cos(phi)[:, None] * b1 + np.sin(phi)[:, None] * b2)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def ground_shading(points: np.ndarray, lights: list[list[float]], ambient: float, e: Effect, occluded,
+                   distance) -> np.ndarray:
+    """Shading factor (M,) of ground points under directional ``lights`` ([dx, dy, dz, intensity]).
+
+    ``occluded(origins, dirs)`` → bool (M,): the object blocks the ray; ``distance(points)`` → (M,) distance to the
+    object. Ambient × contact shadow + Σ intensity · cos · (fraction of the area light the object leaves visible).
+    """
+    contact = 1.0 - e.shadow * np.exp(-np.maximum(distance(points), 0.0) / max(e.softness, 1e-6))
+    shade = ambient * contact
+    lifted = points + np.array([0.0, 0.0, 1e-4])
+    for lx, ly, lz, li in lights:
+        ldir = np.array([lx, ly, lz], float)
+        ldir /= np.linalg.norm(ldir)
+        if ldir[2] <= 0:
+            continue  # a light from below the floor does not light it
+        dirs = light_directions(ldir)
+        seen = np.zeros(len(points))
+        for dv in dirs:
+            seen += ~occluded(lifted, np.broadcast_to(dv, points.shape).copy())
+        shade = shade + li * ldir[2] * seen / len(dirs)
+    return shade

@@ -1,0 +1,143 @@
+"""The support plane (pipeline/support.py): found where an object stands on a textured surface, nowhere else; and
+what the later stages make of it (overlay outline, hull, field clip)."""
+
+import numpy as np
+import pytest
+import torch
+
+from dvr.cameras import Cameras, plane_height, plane_in_frame, sphere_frame
+from pipeline.support import capture_up, find_support
+
+RNG = np.random.default_rng(0)
+
+
+def _look_at(c, target, up=(0.0, 0.0, 1.0)):
+    f = np.asarray(target, float) - c
+    f /= np.linalg.norm(f)
+    r = np.cross(f, up)
+    r /= np.linalg.norm(r)
+    return np.stack([r, np.cross(f, r), f])  # rows: camera x (right), y (down), z (forward)
+
+
+def _ring(n=12, radius=3.0, height=1.5, target=(0.0, 0.0, 0.5)):
+    az = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    C = np.stack([radius * np.cos(az), radius * np.sin(az), np.full(n, height)], 1)
+    return C, np.stack([_look_at(c, target) for c in C])
+
+
+def _floor(n=2000, radius=3.0, z=0.0, noise=0.002):
+    r, a = radius * np.sqrt(RNG.random(n)), RNG.random(n) * 2 * np.pi
+    return np.stack([r * np.cos(a), r * np.sin(a), z + RNG.normal(0, noise, n)], 1)
+
+
+def _ball(n=300, centre=(0.0, 0.0, 0.5), radius=0.5):
+    u = RNG.normal(size=(n, 3))
+    return np.asarray(centre) + radius * u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def _wall(n=600, x=-4.0):
+    return np.stack([np.full(n, x), RNG.uniform(-3, 3, n), RNG.uniform(-1, 3, n)], 1)
+
+
+def test_capture_up_is_world_up_without_roll():
+    _, R = _ring()
+    assert np.allclose(capture_up(R), [0, 0, 1], atol=1e-9)
+
+
+def test_floor_under_the_object_is_found():
+    C, R = _ring()
+    pts = np.concatenate([_floor(), _ball(), _wall()])
+    pl = find_support(pts, C, R, np.array([0.0, 0.0, 0.5]))
+    assert pl is not None
+    assert abs(pl.normal @ [0, 0, 1]) > 0.9999 and abs(pl.offset) < 0.01
+    assert 1900 <= pl.inliers <= 2100
+    assert pl.object_height == pytest.approx(1.0, abs=0.05)  # the ball's top
+    assert np.all(pl.height(C) > 0)  # the normal points to the cameras
+
+
+def test_shifted_and_tilted_frames_give_the_same_plane():
+    C, R = _ring()
+    pts = np.concatenate([_floor(), _ball()])
+    a = np.radians(20)
+    Q = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])  # SfM frames are arbitrary
+    t = np.array([5.0, -2.0, 1.0])
+    pl = find_support(pts @ Q.T + t, C @ Q.T + t, R @ Q.T, Q @ [0, 0, 0.5] + t)
+    assert pl is not None and pl.normal @ (Q @ [0, 0, 1]) > 0.9999
+
+
+def test_no_support_for_a_floating_object_or_a_wall_behind_it():
+    C, R = _ring()
+    target = np.array([0.0, 0.0, 0.5])
+    assert find_support(np.concatenate([_ball(), _wall()]), C, R, target) is None  # the wall is vertical
+    assert find_support(_ball(2000), C, R, target) is None
+
+
+def test_no_support_when_the_plane_lies_on_one_side_only_or_above_the_cameras():
+    C, R = _ring()
+    target = np.array([0.0, 0.0, 0.5])
+    strip = _floor(4000)
+    strip = strip[strip[:, 0] < -1.5]  # a shelf seen behind the object, not under it
+    assert find_support(np.concatenate([strip, _ball()]), C, R, target) is None
+    ceiling = _floor(z=2.5)  # a plane above the cameras is no support
+    assert find_support(np.concatenate([ceiling, _ball()]), C, R, target) is None
+
+
+def test_plane_frames_round_trip():
+    plane = np.array([0.0, 0.0, 1.0, -0.3])
+    T = sphere_frame(np.array([0.2, -0.1, 0.5]), 2.0)  # x_A = T x_B
+    q = plane_in_frame(plane, T)
+    xb = np.array([[0.3, 0.4, -0.1], [1.0, 2.0, 3.0]])
+    xa = xb * 2.0 + [0.2, -0.1, 0.5]
+    assert np.allclose(plane_height(q, xb) * 2.0, plane_height(plane, xa))  # heights scale with the frame
+    assert plane_in_frame(None, T) is None
+
+
+def test_cameras_reframe_moves_the_plane():
+    C, R = _ring()
+    t = -np.einsum("nij,nj->ni", R, C)
+    K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(C), 1, 1))
+    cams = Cameras(K, R, t, np.eye(4), np.array([0.0, 0.0, 1.0, 0.0]))
+    moved = cams.reframe(np.array([0.0, 0.0, 0.5]), 0.5)
+    assert np.allclose(moved.ground, [0, 0, 1, 1.0])  # the floor lies one new radius below the new centre
+    assert cams.subset([0, 1]).ground is cams.ground
+
+
+def test_overlay_outline_of_the_support(tmp_path):
+    from pipeline.masks import support_outline
+
+    C, R = _ring(height=1.0, target=(0.0, 0.0, 0.0))
+    t = -np.einsum("nij,nj->ni", R, C)
+    K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(C), 1, 1))
+    cams = Cameras(K, R, t, np.eye(4), np.array([0.0, 0.0, 1.0, 0.5]))
+    line = support_outline(cams, 0)
+    assert line is not None and len(line) > 50
+    assert (line[:, 1] > 120).mean() > 0.9  # the floor circle lies in the lower part of the picture
+    assert support_outline(Cameras(K, R, t, np.eye(4)), 0) is None
+    assert support_outline(Cameras(K, R, t, np.eye(4), np.array([0.0, 0.0, 1.0, 1.5])), 0) is None  # misses
+
+
+def test_hull_is_empty_below_the_support():
+    from dvr.hull import hull_logits, outside_hull
+
+    C, R = _ring(height=1.0, target=(0.0, 0.0, 0.0))
+    t = -np.einsum("nij,nj->ni", R, C)
+    K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(C), 1, 1))
+    P = torch.from_numpy(K @ np.concatenate([R, t[:, :, None]], 2)).float()
+    masks = torch.ones(len(C), 240, 320)  # every view: all object
+    plane = np.array([0.0, 0.0, 1.0, 0.2])  # z = −0.2
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, -0.5]])
+    assert outside_hull(pts, P, masks).tolist() == [False, False]
+    assert outside_hull(pts, P, masks, ground=plane).tolist() == [False, True]
+    lg = hull_logits(P, masks, res=32, ground=plane)
+    z = torch.linspace(-1, 1, 33)
+    assert (lg[16, 16, z < -0.25] < 0).all() and (lg[16, 16, (z > -0.15) & (z < 0.5)] > 0).all()
+
+
+def test_no_support_through_the_object_itself():
+    """A plane of many points with points on both sides of it (window sills across a facade) is no table."""
+    C, R = _ring()
+    target = np.array([0.0, 0.0, 0.5])
+    sills = _floor(600, radius=0.8, z=0.5)  # a flat row of features through the middle of the object
+    body = np.concatenate([_ball(800, centre=(0, 0, 0.5), radius=0.8)])
+    assert find_support(np.concatenate([sills, body]), C, R, target) is None
+    assert find_support(np.concatenate([_floor(), sills, body + [0, 0, 0.3]]), C, R, target) is not None
