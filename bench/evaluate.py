@@ -11,6 +11,7 @@ diagonal after that Sim(3); automatic masks: IoU against the GT masks.
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -218,9 +219,19 @@ def run_cameras(spec: dict, work: Path, conditions: dict) -> dict:
         out["registered"] = f"0/{len(gtc)}"
         return out
     est = load_cameras(ws / "cameras.npz")
-    idx = [int(p.stem.split("_")[-1]) for p in list_images(ws / "images")]
+    stems = [p.stem for p in list_images(ws / "images")]
+    flags_file = photos.parent / "phone_flags.json"  # a phone folder: file names and EXIF rolls of the views
+    if flags_file.exists():
+        from pipeline.synth.phone import upright_roll
+
+        rec = json.loads(flags_file.read_text())
+        idx = [int(rec[s]["source"]) for s in stems]
+        gt_R = np.stack([upright_roll(gtc.R[i], rec[s]["flag"]) for i, s in zip(idx, stems)])
+    else:
+        idx = [int(s) for s in stems]
+        gt_R = gtc.R[idx]
     out["registered"] = f"{len(idx)}/{len(gtc)}"
-    out["pose"] = pose_errors(sfm_centres(est), est.R, sfm_centres(gtc)[idx], gtc.R[idx])
+    out["pose"] = pose_errors(sfm_centres(est), est.R, sfm_centres(gtc)[idx], gt_R)
     return out
 
 

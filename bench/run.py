@@ -56,12 +56,14 @@ def phone_folder(syn: Path, out: Path) -> Path:
     rotated accordingly), every fourth photo at twice the size, one file name with spaces."""
     from pipeline.synth.phone import write_phone_folder
 
-    return write_phone_folder(syn / "images", out)
+    return write_phone_folder(syn / "images", out.parent / "my phone photos")
 
 
 # capture condition of the cameras table: name → (scene, scene overrides, photo-folder maker or None)
 CONDITIONS = {
     "object on a surface, 400×300": ("cow", {}, None),
+    "object on a wooden parquet (regular planks), 400×300": (
+        "cow", {"effects": [{"kind": "ground", "pattern": "wood", "scale": 4.0}]}, None),
     "object on a surface, 1600×1200": ("cow", {"cameras": {"width": 1600, "height": 1200}}, None),
     "weakly textured object on a surface, 400×300": ("jar", {}, None),
     "only 16 views": ("cow", {"cameras": {"n_views": 16, "rings": 2, "heldout": 0}}, None),
