@@ -10,7 +10,11 @@ ARGS    ?=
 
 .PHONY: setup setup-web test test-fast synth cameras masks depth train mesh texture report bench-core bench bench-quick reconstruct
 
+# everything: the Python environment, and the report's 3-D viewer (model-viewer) where npm exists
 setup: .venv/.installed
+	@if command -v npm >/dev/null 2>&1; then $(MAKE) --no-print-directory setup-web \
+	  || echo "setup: npm install failed: reports will have no 3-D viewer (retry with make setup-web)"; \
+	else echo "setup: npm not found: reports will have no 3-D viewer (install Node.js, then make setup-web)"; fi
 .venv/.installed: requirements.txt pyproject.toml
 	python3 -m venv .venv
 	.venv/bin/pip install -q --upgrade pip

@@ -66,6 +66,8 @@ CONDITIONS = {
         "cow", {"effects": [{"kind": "ground", "pattern": "wood", "scale": 4.0}]}, None),
     "object on a surface, 1600×1200": ("cow", {"cameras": {"width": 1600, "height": 1200}}, None),
     "weakly textured object on a surface, 400×300": ("jar", {}, None),
+    "weakly textured object, 24 views of 320×240": (
+        "jar", {"cameras": {"n_views": 24, "rings": 2, "width": 320, "height": 240, "heldout": 0}}, None),
     "only 16 views": ("cow", {"cameras": {"n_views": 16, "rings": 2, "heldout": 0}}, None),
     "phone folder: EXIF 1/3/6/8, mixed sizes, JPEG": ("cow", {}, phone_folder),
     "checkered sphere (symmetric, repetitive)": ("sphere", {}, None),

@@ -218,14 +218,14 @@ class RaySampler:
         return self.pixels(u)
 
     def pixels(self, flat: torch.Tensor):
-        """Rays, colours and mask values of flat pixel indices into (N, H, W)."""
+        """Rays, colours, mask values and view indices of flat pixel indices into (N, H, W)."""
         N, H, W = self.data.shape
         view = flat // (H * W)
         rem = flat % (H * W)
         i, j = rem // W, rem % W
         uv = torch.stack([j, i], dim=-1).to(torch.float32) + 0.5
         o, d = self.data.rays(view, uv)
-        return o, d, self.data.images[view, i, j], self.data.masks[view, i, j]
+        return o, d, self.data.images[view, i, j], self.data.masks[view, i, j], view
 
     def sample_depth(self, n: int):
         """Rays and sparse depths (exact pixel coordinates), or None when the scene has none."""

@@ -17,6 +17,7 @@ import torch
 from tqdm import tqdm
 
 from . import losses as L
+from .appearance import ViewAppearance
 from .data import RaySampler, SceneData
 from .device import resolve_device
 from .fields import FieldConfig, finite_difference_normals, make_field
@@ -47,6 +48,9 @@ class LossWeights:
     flattens the logit ramp where no ray looks)."""
     normal: float = 0.05
     """Normal smoothness: |n(p̂) − n(p̂ + noise)| on hit points."""
+    appearance: float = 0.01
+    """Pull of the per-view colour transforms towards identity (mean squared log-gain; with
+    ``TrainConfig.appearance``)."""
 
 
 @dataclass
@@ -75,6 +79,9 @@ class TrainConfig:
     """Adam learning rate of the grids and planes."""
     lr_mlp: float = 0.002
     """Adam learning rate of the MLP heads."""
+    lr_appearance: float = 0.01
+    """Learning rate of the per-view colour transforms (``appearance``): a few numbers per photo that must settle
+    within the first few hundred steps, before the texture field takes the differences in."""
     lr_decay: float = 0.1
     """Final LR as a fraction of the initial (exponential decay)."""
     grad_eps: float = 0.05
@@ -101,6 +108,10 @@ class TrainConfig:
     """Resolution of the visual-hull volume."""
     carve_min_views: int = 1
     """Views that must see a point outside their mask before it is carved."""
+    appearance: bool = False
+    """Fit a per-view colour transform (exposure and white balance: a gain per channel and view,
+    see dvr/appearance.py) between the shared texture field and each photo; the fitted gains are written to
+    ``model/appearance.json`` and undone in the texture bake."""
     hull_gate: bool = True
     """Apply the occupancy loss (mask rays the rendering misses) only where the visual hull agrees the point can
     be occupied: a pixel one view's mask got wrong is outvoted instead of growing a floater."""
@@ -128,6 +139,12 @@ def _set_seed(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 def _atomic_save(obj, path: Path) -> None:
@@ -194,10 +211,13 @@ class Trainer:
                 vol = carve_along_rays(vol, o, d, data.depth_val - cfg.depth_free_margin,
                                        value=3.0)  # just free: −10 would pull the nearby surface inwards
             self.model.init_occupancy(vol)
+        self.appearance = ViewAppearance(data.images.shape[0]).to(self.device) if cfg.appearance else None
         grid_ids = {id(p) for p in self.model.grid_parameters()}
         groups = [
             {"params": [p for p in self.model.parameters() if id(p) in grid_ids], "lr": cfg.lr_grid},
             {"params": [p for p in self.model.parameters() if id(p) not in grid_ids], "lr": cfg.lr_mlp},
+            {"params": list(self.appearance.parameters()) if self.appearance is not None else [],
+             "lr": cfg.lr_appearance},
         ]
         groups = [g for g in groups if g["params"]]
         fused = {"fused": True} if self.device.type in ("cpu", "cuda") else {}
@@ -218,6 +238,7 @@ class Trainer:
         _atomic_save({
             "step": self.step, "elapsed": self.elapsed, "skipped": self.skipped,
             "field": self.model.state_dict(), "opt": self.opt.state_dict(), "sched": self.sched.state_dict(),
+            "appearance": self.appearance.state_dict() if self.appearance is not None else None,
             "rng_torch": torch.get_rng_state(), "rng_gen": self.gen.get_state(),
             "rng_np": np.random.get_state(), "rng_py": random.getstate(),
             "rng_cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
@@ -249,6 +270,8 @@ class Trainer:
         if "base" in ck["field"] and ck["field"]["base"].shape != self.model.base.shape:
             self._resize_grid(ck["field"]["base"].shape[-1] - 1)  # the checkpoint is past the upsampling
         self.model.load_state_dict(ck["field"])
+        if self.appearance is not None and ck.get("appearance") is not None:
+            self.appearance.load_state_dict(ck["appearance"])
         self.opt.load_state_dict(ck["opt"])
         self.sched.load_state_dict(ck["sched"])
         torch.set_rng_state(ck["rng_torch"])
@@ -268,7 +291,7 @@ class Trainer:
 
     def losses(self, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         c, w, m = self.cfg, self.cfg.weights, self.model
-        o, d, rgb, mask = self.sampler.sample(c.batch_rays)
+        o, d, rgb, mask, view = self.sampler.sample(c.batch_rays)
         res = find_surface(m.occupancy, o, d, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
                            jitter=c.jitter, generator=None)
         st, inm = res.status, mask > 0.5
@@ -283,6 +306,9 @@ class Trainer:
         ph = o[hi] + dh[:, None] * d[hi]
         hm = inm[hi]
         col = m.texture(ph[hm])
+        if self.appearance is not None:  # the shared colour as this photo's camera rendered it
+            col = self.appearance(col, view[hi][hm])
+            terms["appearance"] = self.appearance.regulariser()
         terms["rgb"] = L.rgb_loss(col, rgb[hi][hm])
         stats["psnr"] = L.psnr(col, rgb[hi][hm])
 
@@ -358,7 +384,7 @@ class Trainer:
         if finite:
             total.backward()
         # guard: never let a non-finite loss or gradient reach the parameters
-        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+        grads = [p.grad for g in self.opt.param_groups for p in g["params"] if p.grad is not None]
         if finite and all(bool(torch.isfinite(g).all()) for g in grads):
             self.opt.step()
             self.sched.step()
@@ -420,11 +446,19 @@ class Trainer:
             log.close()
         return last
 
+    def write_appearance(self, path: Path) -> None:
+        """The fitted per-view colour transforms, by image name: a gain per RGB channel."""
+        gains = self.appearance.gains().cpu().numpy()
+        rec = {name: {"gain": [round(float(x), 5) for x in g]} for name, g in zip(self.data.names, gains)}
+        _atomic_write_text(path, json.dumps(rec, indent=1))
+
     def finish(self) -> Path:
         """Write ``final.pt`` (weights + field config + scale_mat) and a last preview."""
         path = self.out / "final.pt"
         save_model(path, self.model, self.cfg.field, self.data.cams.scale_mat,
                    {"step": self.step, "elapsed": self.elapsed, "train_config": asdict(self.cfg)}, self.data.frame)
+        if self.appearance is not None:
+            self.write_appearance(self.out / "appearance.json")
         self.preview("final")
         return path
 

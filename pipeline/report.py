@@ -141,6 +141,21 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
     return "".join(out) + "</ul>"
 
 
+def appearance_section(ws: Workspace) -> str:
+    """The per-view exposure and white balance fitted in training (``model/appearance.json``), as a table."""
+    path = ws.model / "appearance.json"
+    if not path.exists():
+        return ""
+    looks = json.loads(path.read_text())
+    gains = np.array([t["gain"] for t in looks.values()]) if looks else np.ones((1, 3))
+    rows = "".join(f"<tr><td>{html.escape(n)}</td>" + "".join(f"<td>{g:.3f}</td>" for g in t["gain"])
+                   + "</tr>" for n, t in looks.items())
+    return (f"<h2>Per-view appearance</h2><p>Exposure and white balance fitted per photo (a gain per "
+            f"channel; the texture is baked from the photos with these undone). Gains range "
+            f"{gains.min():.2f}–{gains.max():.2f}.</p><table><tr><th>photo</th><th>gain R</th><th>gain G</th>"
+            f"<th>gain B</th></tr>{rows}</table>")
+
+
 def build(ws: Workspace) -> str:
     secs = ws.seconds()
     stamps = {}
@@ -176,6 +191,7 @@ def build(ws: Workspace) -> str:
         for tag, uri, p in ren:
             parts.append(f'<figure><img src="{uri}"><figcaption>{html.escape(tag)}: PSNR {p:.2f} dB (object '
                          "pixels)</figcaption></figure>")
+    parts.append(appearance_section(ws))
     c = curves(ws.model / "log.jsonl", rep / "curves.png")
     if c:
         parts.append(f'<h2>Training</h2><img src="{_png_b64(cv2.cvtColor(cv2.imread(str(c)), cv2.COLOR_BGR2RGB))}">')

@@ -340,6 +340,19 @@ def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np
     img.save(out_dir / "textured.png")
 
 
+def undo_appearance(images: list[np.ndarray], names: list[str], looks: dict) -> list[np.ndarray]:
+    """Each photo mapped back to the shared colour of the texture field: ``photo / gain`` with the view's
+    fitted transform (``model/appearance.json``), so views of different exposure agree before they are blended."""
+    out = []
+    for img, name in zip(images, names):
+        t = looks.get(name)
+        if t is None:
+            out.append(img)
+            continue
+        out.append(np.clip(img / np.maximum(np.asarray(t["gain"], np.float32), 1e-3), 0.0, 1.0))
+    return out
+
+
 def run(ws: Workspace, cfg: TextureConfig, force: bool = False) -> bool:
     clean = ws.mesh / "clean.ply"
     final = ws.model / "final.pt"
@@ -347,7 +360,8 @@ def run(ws: Workspace, cfg: TextureConfig, force: bool = False) -> bool:
     ws.require(ws.images, ws.cameras, hint="run the cameras stage first")
     h = config_hash(cfg)
     outs = [ws.mesh / f"textured.{e}" for e in ("obj", "mtl", "png", "glb")]
-    ins = [clean, ws.images, ws.cameras] + ([final] if final.exists() else [])
+    looks = ws.model / "appearance.json"  # per-view exposure and white balance fitted in training
+    ins = [clean, ws.images, ws.cameras] + [p for p in (final, looks) if p.exists()]
     if not force and ws.up_to_date("texture", h, ins, outs):
         print(f"texture: up to date ({outs[-1]})")
         return False
@@ -368,6 +382,8 @@ def run(ws: Workspace, cfg: TextureConfig, force: bool = False) -> bool:
         verts_n = (verts_n - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T
     images = [cv2.cvtColor(cv2.imread(str(p), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
               for p in paths]
+    if looks.exists():
+        images = undo_appearance(images, [p.stem for p in paths], json.loads(looks.read_text()))
     field, _, field_frame = load_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
     nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame)
     out_v = nv @ S[:3, :3].T + S[:3, 3] if cfg.frame == "sfm" else nv

@@ -2,15 +2,15 @@
 
 import json
 
-import numpy as np
 import pytest
+import yaml
 
 from dvr.cameras import load_cameras
 from dvr.data import list_images
 from dvr.metrics import pose_errors
 from pipeline.cli import main
 from pipeline.synth import scene_from_dict, write_scene
-from tests.conftest import ROOT, SHARED
+from tests.conftest import ROOT
 
 pytestmark = pytest.mark.slow
 
@@ -20,29 +20,25 @@ def _centres(c):
 
 
 def test_ladder_climbs_where_default_sift_falls_short(tmp_path, capsys):
-    """The cow on a wooden parquet (regular planks), 24 views of 400×300 30° apart: default SIFT registers a few
-    views; the ladder climbs until every photo registers, with sane poses."""
-    sc = scene_from_dict({
-        "shape": {"kind": "mesh", "path": str(SHARED / "meshes/cow/cow.obj"), "fit_radius": 0.8, "up": "y"},
-        "albedo": {"kind": "texture"}, "background": {"kind": "backdrop", "radius": 3.5, "saturation": 0.6},
-        "lighting": {"kind": "lambertian", "ambient": 0.5, "lights": [[0.4, 0.5, 0.8, 0.6]]},
-        "effects": [{"kind": "ground", "pattern": "wood", "scale": 4.0}],
-        "cameras": {"n_views": 24, "width": 400, "height": 300, "radius": 2.6, "fov_deg": 45, "elevation": [20, 50],
-                    "rings": 2}}, ROOT)
-    write_scene(sc, tmp_path / "syn")
+    """The weakly textured jar on its blocky floor (configs/scenes/jar_floor.yaml) with 24 views of 320×240 30°
+    apart: default SIFT registers about half the photos; the ladder climbs until every photo registers, with
+    poses as accurate as the issue asks (camera centres within ~1 % of the orbit radius)."""
+    spec = yaml.safe_load((ROOT / "configs" / "scenes" / "jar_floor.yaml").read_text())
+    spec["cameras"].update(n_views=24, rings=2, width=320, height=240, heldout=0)
+    write_scene(scene_from_dict(spec, ROOT / "configs" / "scenes"), tmp_path / "syn")
     ws = tmp_path / "ws"
     assert main(["cameras", str(ws), "--images", str(tmp_path / "syn" / "images")]) == 0
     out = capsys.readouterr().out
     stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
     rungs = stamp["rungs"]
     print(json.dumps(rungs))
-    assert rungs[0]["rung"] == "default" and rungs[0].get("registered", 0) <= 16  # default SIFT falls short
+    assert rungs[0]["rung"] == "default" and rungs[0].get("registered", 0) <= 18  # default SIFT falls short
     assert stamp["rung"] != "default" and "rung default:" in out and f"rung {stamp['rung']}:" in out
     est, gt = load_cameras(ws / "cameras.npz"), load_cameras(tmp_path / "syn" / "cameras.npz")
     idx = [int(p.stem) for p in list_images(ws / "images")]
     assert len(idx) == 24
     err = pose_errors(_centres(est), est.R, _centres(gt)[idx], gt.R[idx])
-    assert err["center_err_rel_max"] < 0.03 and err["rot_err_deg_max"] < 2.0, err
+    assert err["center_err_rel_max"] < 0.015 and err["rot_err_deg_max"] < 1.0, err
 
 
 def test_symmetric_object_stops_with_a_clear_error_never_wrong_poses(tmp_path, capsys):

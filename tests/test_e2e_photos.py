@@ -117,6 +117,21 @@ def test_phone_folder_on_a_floor_to_textured_mesh(tmp_path):
     print(json.dumps({"mask_iou": with_plane, "mask_iou_without_plane": without}))
     assert with_plane >= 0.95 and without < 0.9
 
+    # the user's masks win over the plane: a strip of floor the user marked as object stays object
+    own, mine = tmp_path / "my masks", tmp_path / "with my masks"
+    own.mkdir()
+    for n in names:
+        kind, i, flag = truth[n]
+        g = syn / "gt" / ("masks" if kind == "train" else "heldout/masks") / f"{i:06d}.png"
+        m = _upright(cv2.imread(str(g), 0), flag)
+        m[-12:] = 255
+        cv2.imwrite(str(own / f"{n}.png"), m)
+    shutil.copytree(full, mine, ignore=shutil.ignore_patterns("masks", "depth", ".stages"))
+    assert main(["masks", str(mine), "--masks", str(own), *cfg]) == 0
+    for n in names:
+        assert np.array_equal(cv2.imread(str(mine / "masks" / f"{n}.png"), 0) > 127,
+                              cv2.imread(str(own / f"{n}.png"), 0) > 127), n
+
     # train on the training photos, mesh, texture, report
     subset_workspace(full, ws, [k for k, n in enumerate(names) if not n.startswith("heldout_")])
     assert main(["train", str(ws), *cfg, "--train.no-progress"]) == 0

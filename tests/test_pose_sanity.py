@@ -70,6 +70,16 @@ def test_photo_correlation_follows_the_homography():
     assert photo_correlation(img, moved, np.eye(3)) < photo_correlation(img, moved, H) - 0.1
 
 
+def test_photo_correlation_of_a_blank_photo_is_finite_and_no_evidence():
+    """A blank (over-exposed, lens cap) photo has zero variance: the correlation is 1 (no evidence against the
+    pair), never 0/0 = NaN, which would compare False with every threshold and slip through."""
+    blank = np.full((120, 160), 255, np.uint8)
+    img = cv2.GaussianBlur((np.random.default_rng(3).random((120, 160)) * 255).astype(np.uint8), (0, 0), 2)
+    for a, b in ((blank, img), (img, blank), (blank, blank)):
+        c = photo_correlation(a, b, np.eye(3))
+        assert np.isfinite(c) and c == 1.0
+
+
 def test_ladder_order_names_and_features():
     assert [r.name for r in LADDER] == list(RUNG_NAMES)
     rungs = ladder("guided", "relaxed", max_features=4096)

@@ -39,6 +39,24 @@ def test_listed_effects_are_rendered(tmp_path):
     assert img[~m].std() > 0.05  # textured backdrop
 
 
+def test_exposure_and_white_balance_are_recorded_per_view(tmp_path):
+    """The exposure effect scales each view's colours by per-channel gains (exposure × white balance), different
+    from view to view, and writes them to gt/exposure.json: the photos divided by them are the plain renders."""
+    base = {"albedo": {"kind": "constant", "color": [0.5, 0.4, 0.3]}, "background": {"kind": "none"}}
+    plain, lit = tmp_path / "plain", tmp_path / "exposed"
+    write_scene(small_scene(**base), plain)
+    assert not (plain / "gt" / "exposure.json").exists()
+    write_scene(small_scene(**base, effects=[{"kind": "exposure", "amount": 0.3, "white_balance": 0.1}]), lit)
+    gains = json.loads((lit / "gt" / "exposure.json").read_text())["images"]
+    g = np.array([gains[f"{i:06d}"] for i in range(8)])
+    assert g.shape == (8, 3) and g.std(0).min() > 0.02  # gains vary between views
+    assert np.abs(g / g[:, 1:2] - 1).max() > 0.02  # and between channels (white balance)
+    m = cv2.imread(str(plain / "masks" / "000000.png"), 0) > 127
+    for i in range(8):
+        a, b = _img(plain, i)[m], _img(lit, i)[m]
+        assert np.allclose(b, np.clip(a * g[i], 0, 1), atol=1.5 / 255)
+
+
 def test_layout_and_ground_truth(small_ws):
     for p in ["images/000000.png", "masks/000007.png", "cameras.npz", "gt/mesh.ply", "gt/depth/000000.npy",
               "depth/000000.npz", "gt/scene.json"]:
@@ -147,6 +165,8 @@ def test_ground_effect_object_rests_on_a_plane_masks_and_mesh_object_only(tmp_pa
     assert "effect:ground" in meta["passes"] and "ground_shadows" in meta["passes"]
     n, d = np.array(meta["ground_plane"][:3]), meta["ground_plane"][3]
     assert np.allclose(n, [0, 0, 1]) and -d == pytest.approx(-0.5 + 0.004, abs=0.003)  # touches the ball's bottom
+    # the GT cameras carry the plane (SfM frame), as the cameras stage's do; a floating scene's carry none
+    assert np.allclose(np.load(tmp_path / "g" / "cameras.npz")["ground_plane"], meta["ground_plane"])
     write_scene(small_scene(**base), tmp_path / "f")
     for i in range(8):
         mg = cv2.imread(str(tmp_path / "g" / "masks" / f"{i:06d}.png"), 0) > 127
@@ -155,6 +175,7 @@ def test_ground_effect_object_rests_on_a_plane_masks_and_mesh_object_only(tmp_pa
         img = _img(tmp_path / "g", i)
         ground = ~mg & (np.abs(img - [0, 0, 1]).sum(-1) > 0.05)  # neither object nor the blue backdrop
         assert ground.mean() > 0.2  # the plane runs under and around the object
+    assert "ground_plane" not in np.load(tmp_path / "f" / "cameras.npz").files
     gt = trimesh.load(tmp_path / "g" / "gt" / "mesh.ply")
     assert np.linalg.norm(gt.vertices, axis=1).max() < 0.51  # the object alone
     unlit = {**base, "lighting": {"kind": "none"}}

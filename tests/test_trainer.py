@@ -47,8 +47,9 @@ def test_losses_are_means_not_sums():
 def test_sampler_boundary_oversampling(small_ws):
     data = load_scene(small_ws, torch.device("cpu"))
     s = RaySampler(data, boundary_fraction=1.0, generator=torch.Generator().manual_seed(0))
-    o, d, rgb, m = s.sample(512)
-    assert o.shape == (512, 3) and rgb.shape == (512, 3) and m.shape == (512,)
+    o, d, rgb, m, view = s.sample(512)
+    assert o.shape == (512, 3) and rgb.shape == (512, 3) and m.shape == (512,) and view.shape == (512,)
+    assert view.dtype == torch.long and 0 <= view.min() and view.max() < data.images.shape[0]
     assert torch.allclose(d.norm(dim=-1), torch.ones(512))
     frac = m.mean().item()  # rays in the band straddle the boundary: both classes present
     assert 0.1 < frac < 0.9

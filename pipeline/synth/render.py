@@ -315,20 +315,29 @@ def pixel_samples(H: int, W: int, ss: int) -> tuple[np.ndarray, np.ndarray]:
     return pix, centre.reshape(-1)
 
 
-def image_effects(img: np.ndarray, listed: dict, rng: np.random.Generator) -> np.ndarray:
-    """Per-view camera effects on an (H, W, 3) image: exposure, blur, sensor noise (only those listed)."""
-    if "exposure" in listed:
-        img = img * (1 + rng.uniform(-1, 1) * listed["exposure"].amount)
+def exposure_gains(e: Effect, rng: np.random.Generator) -> np.ndarray:
+    """Per-channel gains (3,) of one view: an exposure gain 1 ± ``amount`` times a white balance 1 ± ``white_balance``
+    per channel (linear RGB, as the renderer's colours)."""
+    gain = 1 + rng.uniform(-1, 1) * e.amount
+    return gain * (1 + rng.uniform(-1, 1, 3) * e.white_balance) if e.white_balance > 0 else np.full(3, gain)
+
+
+def image_effects(img: np.ndarray, listed: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Per-view camera effects on an (H, W, 3) image: exposure and white balance, blur, sensor noise (only those
+    listed); returns the image and its per-channel exposure gains (ones without the effect)."""
+    gains = exposure_gains(listed["exposure"], rng) if "exposure" in listed else np.ones(3)
+    img = img * gains
     if "blur" in listed:
         img = cv2.GaussianBlur(img, (0, 0), listed["blur"].sigma)
     if "noise" in listed:
         img = img + rng.normal(0, listed["noise"].sigma, img.shape)
-    return np.clip(img, 0, 1)
+    return np.clip(img, 0, 1), gains
 
 
 def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: list[str], view_seed: int = 0,
                  ground_z: float | None = None):
-    """Render views: images (N,H,W,3) float, masks (N,H,W) bool, depth (N,H,W) canonical ray depth.
+    """Render views: images (N,H,W,3) float, masks (N,H,W) bool, depth (N,H,W) canonical ray depth, exposure gains
+    (N,3).
 
     With a ``ground`` effect, ``ground_z`` is the height of its plane (canonical frame): rays that reach it before
     the object see the ground, and masks and depth are the object's alone."""
@@ -343,7 +352,7 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
     need_normals = scene.lighting.kind != "none" or "specular" in listed
     trace = object_tracer(scene, mesh_shape, need_normals)
     occlusion = object_occlusion(scene, mesh_shape) if ground is not None and scene.lighting.kind != "none" else None
-    imgs, masks, depths = [], [], []
+    imgs, masks, depths, gains = [], [], [], []
     for v in range(len(K)):
         d = pix @ np.linalg.inv(K[v]).T @ R[v]
         d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -365,11 +374,13 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
         img[rest] = background_colour(scene, o[rest], d[rest])
         img = img.reshape(H, ss, W, ss, 3).mean(axis=(1, 3))  # box filter over the pixel
         hit, depth = hit[centre], depth[centre]
-        imgs.append(image_effects(img, listed, rng))
+        img, g = image_effects(img, listed, rng)
+        imgs.append(img)
+        gains.append(g)
         masks.append(hit.reshape(H, W))
         depths.append(np.where(hit, depth, 0.0).reshape(H, W))
     _list_passes(scene, passes, ss, need_normals)
-    return np.stack(imgs), np.stack(masks), np.stack(depths)
+    return np.stack(imgs), np.stack(masks), np.stack(depths), np.stack(gains)
 
 
 EFFECTS = ("noise", "exposure", "distortion", "blur", "specular", "ground")
@@ -440,18 +451,26 @@ def write_scene(scene: Scene, out: str | Path) -> dict:
     scale_mat[:3, 3] = off
     for sub in ["images", "masks", "gt/depth", "gt/heldout/images", "gt/heldout/masks"]:
         (out / sub).mkdir(parents=True, exist_ok=True)
-    dist = {e.kind: e for e in scene.effects}.get("distortion")
+    listed = {e.kind: e for e in scene.effects}
+    dist = listed.get("distortion")
     mesh = gt_mesh(scene, mesh_shape)
-    ground = {e.kind: e for e in scene.effects}.get("ground")
+    ground = listed.get("ground")
     ground_z = float(mesh.vertices[:, 2].min()) + ground.sink if ground is not None else None
+    # the support plane n·x + d = 0 in the world frame (the SfM frame of the GT cameras), n up to the cameras: part
+    # of the ground truth the GT cameras carry, as SfM's cameras carry the plane it finds
+    plane = [0.0, 0.0, 1.0, -float(s * ground_z + off[2])] if ground_z is not None else None
+
+    exposure: dict[str, dict] = {}  # per image folder, per view: the exposure gains the photo was rendered with
 
     def one_set(K, R, C, img_dir: Path, mask_dir: Path | None, cam_path: Path, depth_dir: Path | None, seed: int):
-        imgs, masks, depths = render_views(scene, K, R, C, mesh_shape, passes, seed, ground_z)
+        imgs, masks, depths, gains = render_views(scene, K, R, C, mesh_shape, passes, seed, ground_z)
+        exposure[img_dir.relative_to(out).as_posix()] = {f"{i:06d}": [round(float(x), 6) for x in g]
+                                                         for i, g in enumerate(gains)}
         if dist is not None and dist.k1 != 0.0:
             imgs, masks = distort(imgs, masks, K[0], dist.k1)
         Rw = R
         tw = -np.einsum("nij,nj->ni", R, s * C + off)
-        save_cameras(cam_path, K, Rw, tw, scale_mat)
+        save_cameras(cam_path, K, Rw, tw, scale_mat, plane)
         for i in range(len(K)):
             name = f"{i:06d}"
             _write_png(img_dir / f"{name}.png", imgs[i])
@@ -488,7 +507,9 @@ def write_scene(scene: Scene, out: str | Path) -> dict:
     mesh.export(out / "gt" / "mesh.ply")
     meta = {"scene": asdict(scene), "passes": passes, "seconds": round(time.perf_counter() - t0, 3),
             "n_views": int(len(K)), "n_heldout": int(len(Kh))}
-    if ground_z is not None:  # the support plane n·x + d = 0 in the world frame, n pointing up (to the cameras)
-        meta["ground_plane"] = [0.0, 0.0, 1.0, -float(s * ground_z + off[2])]
+    if plane is not None:
+        meta["ground_plane"] = plane
     (out / "gt" / "scene.json").write_text(json.dumps(meta, indent=1))
+    if "exposure" in listed:
+        (out / "gt" / "exposure.json").write_text(json.dumps(exposure, indent=1))
     return meta

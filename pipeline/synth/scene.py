@@ -83,11 +83,15 @@ class Lighting:
 @dataclass
 class Effect:
     kind: str = "noise"
-    """noise (sigma) | exposure (amount: max relative gain change) | distortion (k1) | blur (sigma px) |
+    """noise (sigma) | exposure (amount: max relative gain change; white_balance: max relative change of each
+    colour channel's gain on top; the gains of every view are written to ``gt/exposure.json``) | distortion (k1) |
+    blur (sigma px) |
     specular (amount, shininess) | ground (pattern, scale, color, color2, shadow, softness, sink, seed: a plane
     the object rests on, see ``ground.py``)."""
     sigma: float = 0.01
     amount: float = 0.2
+    white_balance: float = 0.0
+    """exposure: max relative change of each colour channel's gain (auto white balance), on top of ``amount``."""
     k1: float = 0.0
     shininess: float = 32.0
     pattern: str = "wood"
