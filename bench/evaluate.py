@@ -46,7 +46,10 @@ def scene(name: str, over: dict) -> Path:
     if not (out / "gt" / "scene.json").exists():
         d = yaml.safe_load(SCENES[name].read_text())
         for k, v in over.items():
-            d[k] = {**d.get(k, {}), **v} if isinstance(v, dict) else v
+            if k == "effects_add":  # effects listed on top of the scene's own
+                d["effects"] = [*d.get("effects", []), *v]
+            else:
+                d[k] = {**d.get(k, {}), **v} if isinstance(v, dict) else v
         shutil.rmtree(out, ignore_errors=True)
         write_scene(scene_from_dict(d, SCENES[name].parent), out)
     return out
@@ -103,14 +106,20 @@ def mask_iou(ws: Path, gt_masks: dict[str, Path]) -> float:
     return float(np.mean(ious)) if ious else float("nan")
 
 
-def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray) -> float:
-    """PSNR of the textured mesh at a camera against a photo, over ``mask`` ∪ the mesh's pixels."""
+def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray, gain_fit: bool = False) -> float:
+    """PSNR of the textured mesh at a camera against a photo, over ``mask`` ∪ the mesh's pixels. ``gain_fit``: after
+    scaling each colour channel of the render by the least-squares gain to the photo (a held-out photo's own
+    exposure and white balance cannot be predicted; what remains is the texture's error)."""
     from dvr.metrics import masked_psnr
     from pipeline.texture import render_textured
 
     h, w = photo.shape[:2]
     img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, R, centre, w, h)
-    return masked_psnr(img, photo, mask | hit)
+    m = mask | hit
+    if gain_fit and m.any():
+        a, b = img[m], photo[m]
+        img = img * ((a * b).sum(0) / np.maximum((a * a).sum(0), 1e-12))
+    return masked_psnr(img, photo, m)
 
 
 def _read_rgb(path: Path) -> np.ndarray:
@@ -154,6 +163,10 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
         tm, tex = textured(ws)
         psnr = [render_psnr(tm, tex, hc.K[i], hc.R[i], sfm_centres(hc)[i], _read_rgb(p),
                             _read_mask(syn / "gt" / "heldout" / "masks" / p.name)) for i, p in enumerate(held)]
+        extra["psnr_gain_fit"] = float(np.mean([
+            render_psnr(tm, tex, hc.K[i], hc.R[i], sfm_centres(hc)[i], _read_rgb(p),
+                        _read_mask(syn / "gt" / "heldout" / "masks" / p.name), gain_fit=True)
+            for i, p in enumerate(held)]))
     else:
         full = work / "all"
         cli(["cameras", str(full), "--images", str(photos_folder(syn, work / "photos")), *cfg])
@@ -235,7 +248,7 @@ def run_cameras(spec: dict, work: Path, conditions: dict) -> dict:
     return out
 
 
-def run_dtu(spec: dict, work: Path) -> dict:
+def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     """DTU scan24 through our SfM and automatic masks (all 49 photos), every 7th photo held out of training."""
     from bench.dtu_reference import dtu_reference
     from dvr.cameras import load_cameras
@@ -259,7 +272,7 @@ def run_dtu(spec: dict, work: Path) -> dict:
     ws = work / "ws"
     subset_workspace(full, ws, [i for i in range(len(names)) if i % 7 != 0])
     cfg = ["--config", str(ROOT / "configs" / f"{spec['preset']}.yaml")]
-    train_mesh_texture(ws, cfg, [])
+    train_mesh_texture(ws, cfg, (knobs or {}).get(spec.get("knob"), ([], {}))[0])
     tm, tex = textured(ws)
     from dvr.metrics import masked_psnr
     from pipeline.texture import render_textured

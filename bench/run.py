@@ -49,6 +49,15 @@ KNOBS = {
     "images 200x150": ([], {"cameras": {"width": 200, "height": 150}}),
     "texture=1024": (["--texture.size", "1024"], {}),
 }
+# ablation (cow on the floor, GT cameras, default preset): the same scene photographed with per-view exposure and
+# white balance and with specular highlights, trained without and with the per-view appearance (issue 11)
+LOOKS = [{"kind": "exposure", "amount": 0.25, "white_balance": 0.08}, {"kind": "specular", "amount": 0.25,
+                                                                         "shininess": 30.0}]
+ABLATIONS = {
+    "exposure+specular": ([], {"effects_add": LOOKS}),
+    "exposure+specular, appearance": (["--train.appearance"], {"effects_add": LOOKS}),
+    "appearance": (["--train.appearance"], {}),  # the plain cow (nothing to fix) and DTU
+}
 
 
 def phone_folder(syn: Path, out: Path) -> Path:
@@ -96,7 +105,9 @@ def plan(quick: bool) -> list[dict]:
     out += [{"scene": "cow_float", "cameras": "gt", "preset": "default"}]
     out += [{"scene": s, "cameras": "sfm", "preset": "default"} for s in (*FLOOR_SCENES, "cow_float")]
     out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k} for k in KNOBS]
+    out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k, "ablation": True} for k in ABLATIONS]
     out += [{"scene": "dtu", "cameras": "sfm", "preset": p} for p in ("fast", "default")]
+    out += [{"scene": "dtu", "cameras": "sfm", "preset": "default", "knob": "appearance", "ablation": True}]
     out += [{"kind": "cameras", "condition": c, "scene": CONDITIONS[c][0]} for c in CONDITIONS]
     return out
 
@@ -105,9 +116,9 @@ def one(spec: dict, work: Path) -> dict:
     if spec.get("kind") == "cameras":
         r = run_cameras(spec, work, CONDITIONS)
     elif spec["scene"] == "dtu":
-        r = run_dtu(spec, work)
+        r = run_dtu(spec, work, ABLATIONS)
     else:
-        r = run_synthetic(spec, work, KNOBS)
+        r = run_synthetic(spec, work, {**KNOBS, **ABLATIONS})
     r["total_s"] = round(sum(r["seconds"].values()), 2)
     return {**spec, **r}
 

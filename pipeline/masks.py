@@ -8,7 +8,8 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
    outside the projected unit sphere is background (the object lies inside it by construction); plane-sweep
    stereo (:mod:`pipeline.mask_stereo`) adds object seeds where a pixel is photo-consistent only at depths
    inside the sphere and background seeds where only beyond it — what separates an object that has its
-   backdrop's colours (and seeds GrabCut when given cameras come without SfM tracks);
+   backdrop's colours (and seeds GrabCut when given cameras come without SfM tracks); on the floor inside the
+   object's sphere its background labels are only probable (:func:`support_in_sphere`);
 2. GrabCut in every image, seeded by those;
 3. multi-view consistency, ``vote_rounds`` times: the visual hull of all masks, carving a point only when
    ≥ ``carve_min_views`` views see it as background, is re-projected into every view as an upper bound, and
@@ -106,6 +107,21 @@ def object_region(cams: Cameras, i: int, h: int, w: int) -> np.ndarray:
         near, far = np.maximum(near, above_from), np.minimum(far, above_to)
         hit &= (h0 >= 0) | (rate > 0)
     return (hit & (far > near)).reshape(h, w)
+
+
+def support_in_sphere(cams: Cameras, i: int, h: int, w: int) -> np.ndarray:
+    """(h, w) bool: pixels whose ray meets the support plane inside the unit sphere (the floor around and under the
+    object; none without a plane). There the plane-sweep cannot tell the floor from the object's lowest
+    ``GROUND_BAND`` (both lie within a fraction of a pixel's parallax of the plane), so its background evidence is
+    only probable: GrabCut's colours decide (hard labels there cut the strip where the object meets the floor)."""
+    if cams.ground is None:
+        return np.zeros((h, w), bool)
+    o, d = pixel_center_rays(cams.K[i], cams.R[i], cams.centers[i], w, h)
+    rate = d @ cams.ground[:3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(rate < -1e-12, -plane_height(cams.ground, o) / rate, np.inf)
+    x = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+    return (np.isfinite(t) & (t > 0) & (np.linalg.norm(x, axis=1) < 1.0)).reshape(h, w)
 
 
 def remove_specks(mask: np.ndarray, fraction: float) -> np.ndarray:
@@ -228,7 +244,9 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
         if stereo is not None:
             inside = lab != cv2.GC_BGD  # the projected sphere
             lab[inside & (stereo[i] == OBJECT)] = cv2.GC_FGD
-            lab[inside & (stereo[i] == BACKGROUND)] = cv2.GC_BGD
+            bg = inside & (stereo[i] == BACKGROUND)
+            lab[bg] = cv2.GC_BGD
+            lab[bg & support_in_sphere(cams, i, h, w)] = cv2.GC_PR_BGD
         seeds.append(lab)
     first = [remove_specks(m, cfg.speck_fraction) for m in grabcut_all(imgs, seeds, cfg.grabcut_iters)]
     k = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)

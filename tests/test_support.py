@@ -141,3 +141,26 @@ def test_no_support_through_the_object_itself():
     body = np.concatenate([_ball(800, centre=(0, 0, 0.5), radius=0.8)])
     assert find_support(np.concatenate([sills, body]), C, R, target) is None
     assert find_support(np.concatenate([_floor(), sills, body + [0, 0, 0.3]]), C, R, target) is not None
+
+
+def test_support_in_sphere_marks_the_floor_inside_the_sphere_only():
+    """The pixels where the plane-sweep's background evidence is only probable (the floor inside the object's
+    sphere, where the object's lowest band and the floor lie within a pixel's parallax): the floor disc round the
+    object, not the floor beyond the sphere, not what lies above the horizon; nothing without a plane."""
+    from pipeline.masks import support_in_sphere
+    from pipeline.raycast import pixel_center_rays
+
+    C, R = _ring(height=1.0, target=(0.0, 0.0, 0.0))
+    t = -np.einsum("nij,nj->ni", R, C)
+    K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(C), 1, 1))
+    plane = np.array([0.0, 0.0, 1.0, 0.5])  # z = −0.5: the floor cuts the unit sphere in a disc of radius 0.87
+    cams = Cameras(K, R, t, np.eye(4), plane)
+    soft = support_in_sphere(cams, 0, 240, 320)
+    assert soft.shape == (240, 320) and soft.dtype == bool
+    o, d = pixel_center_rays(K[0], R[0], C[0], 320, 240)
+    s = -(o[:, 2] + 0.5) / np.where(d[:, 2] < 0, d[:, 2], np.nan)  # ray depth to the floor (NaN: never meets it)
+    x = o + np.nan_to_num(s)[:, None] * d
+    expect = (np.nan_to_num(s, nan=-1) > 0) & (np.linalg.norm(x, axis=1) < 1.0)
+    assert soft.sum() > 1000 and np.array_equal(soft.reshape(-1), expect)
+    assert not soft[:100].any()  # the upper part of the picture looks over the floor disc
+    assert not support_in_sphere(Cameras(K, R, t, np.eye(4)), 0, 240, 320).any()
