@@ -34,6 +34,18 @@ def keep_large_components(verts: np.ndarray, faces: np.ndarray, min_ratio: float
     return faces[count[fl] >= min_ratio * count.max()]
 
 
+def _make_closed(ms) -> None:
+    """Split non-manifold edges and vertices, then close the small holes that leaves (and any others)."""
+    ms.meshing_repair_non_manifold_edges()
+    ms.meshing_repair_non_manifold_vertices()
+    try:
+        ms.meshing_close_holes(maxholesize=30)
+    except pymeshlab.PyMeshLabException:  # needs an edge-manifold mesh; leave the holes otherwise
+        pass
+    ms.set_selection_none()  # close_holes selects its new faces, and later filters would act on those only
+    ms.meshing_remove_unreferenced_vertices()
+
+
 def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray]:
     """Small components, duplicates, degenerate faces, non-manifold edges, small holes, smoothing, decimation."""
     ms = pymeshlab.MeshSet()
@@ -48,15 +60,12 @@ def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> tuple[n
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f.astype(np.int32)))
     ms.meshing_remove_unreferenced_vertices()
-    try:
-        ms.meshing_close_holes(maxholesize=30)
-    except pymeshlab.PyMeshLabException:  # needs an edge-manifold mesh; leave the holes otherwise
-        pass
-    ms.set_selection_none()  # close_holes selects its new faces, and later filters would act on those only
+    _make_closed(ms)
     if cfg.smooth_iterations > 0:
         ms.apply_coord_taubin_smoothing(stepsmoothnum=cfg.smooth_iterations)
     if ms.current_mesh().face_number() > cfg.max_faces:
         ms.meshing_decimation_quadric_edge_collapse(targetfacenum=cfg.max_faces, preservenormal=True)
+        _make_closed(ms)  # an edge collapse can pinch two sheets into one edge shared by four faces
     ms.meshing_remove_unreferenced_vertices()
     m = ms.current_mesh()
     return m.vertex_matrix(), m.face_matrix()

@@ -34,3 +34,23 @@ def test_decimation_reaches_the_budget_after_hole_filling():
     m = trimesh.Trimesh(cv, cf)
     assert len(m.split(only_watertight=False)) == 1  # the speck is gone
     assert np.allclose(np.linalg.norm(cv, axis=1), 0.5, atol=0.02)
+
+
+def test_make_closed_splits_an_edge_shared_by_four_faces():
+    """Two boxes meeting along one edge (what a decimation's edge collapse made on the e2e phone scene: 1 edge of
+    40 k faces shared by 4 faces, so the mesh was not watertight): after _make_closed every edge has 2 faces."""
+    import pymeshlab
+
+    from pipeline.mesh import _make_closed
+
+    a = trimesh.creation.box(bounds=[[0, 0, 0], [1, 1, 1]])
+    b = trimesh.creation.box(bounds=[[1, 1, 0], [2, 2, 1]])
+    m = trimesh.util.concatenate([a, b])
+    m.merge_vertices()
+    assert not m.is_watertight  # the shared edge has four faces
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(m.vertices, float), face_matrix=np.asarray(m.faces, np.int32)))
+    _make_closed(ms)
+    c = ms.current_mesh()
+    out = trimesh.Trimesh(c.vertex_matrix(), c.face_matrix(), process=False)
+    assert out.is_watertight and len(out.faces) >= 24
