@@ -8,7 +8,7 @@ WS      ?= $(OUT)
 FORCE   ?=
 ARGS    ?=
 
-.PHONY: setup setup-web test test-fast synth cameras masks depth train mesh texture report bench-core bench bench-quick reconstruct
+.PHONY: setup setup-web test test-fast board synth cameras masks depth train mesh texture report bench-core bench bench-quick reconstruct
 
 # everything: the Python environment, and the report's 3-D viewer (model-viewer) where npm exists
 setup: .venv/.installed
@@ -34,6 +34,11 @@ test: setup
 
 test-fast: setup
 	$(PY) -m pytest -q -m "not slow"
+
+# a printable ChArUco board for metric scale (A4, 300 dpi): make board [BOARD=board.png]
+BOARD ?= board.png
+board: setup
+	$(PY) -m pipeline board "$(BOARD)"
 
 # synthetic scene: make synth SCENE=configs/scenes/torus.yaml OUT=work/torus
 SCENE ?= configs/scenes/torus.yaml

@@ -35,17 +35,25 @@ def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, size
 
 
 def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min_views: int = 1,
-                 chunk: int = 65536, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None) -> torch.Tensor:
+                 chunk: int = 65536, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
+                 contact_band: float = 0.0) -> torch.Tensor:
     """True for points that ≥ ``min_views`` views see outside their mask, that no view sees, or that lie below
-    the support plane ``ground`` (4,) when the object stands on one. ``sizes``: see :func:`mask_lookup`."""
+    the support plane ``ground`` (4,) when the object stands on one. Within ``contact_band`` above that plane
+    (where the object meets its support and automatic masks are least sure) a point needs ≥ max(``min_views``,
+    2) views to be outside. ``sizes``: see :func:`mask_lookup`."""
     out = []
     for s in range(0, points.shape[0], chunk):
         p = points[s : s + chunk]
         vals, seen = mask_lookup(p, P, masks, sizes)
         n_out = ((vals < 0.5) & seen).sum(0)
-        free = (n_out >= min_views) | (seen.sum(0) == 0)
+        need = torch.full_like(n_out, min_views)
         if ground is not None:
-            free |= plane_height(ground, p) < 0
+            hgt = plane_height(ground, p)
+            if contact_band > 0:
+                need = torch.where((hgt >= 0) & (hgt < contact_band), torch.clamp(need, min=2), need)
+        free = (n_out >= need) | (seen.sum(0) == 0)
+        if ground is not None:
+            free |= hgt < 0
         out.append(free)
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool, device=points.device)
 
@@ -58,12 +66,14 @@ def grid_points(res: int, device=None, dtype=torch.float32) -> torch.Tensor:
 
 
 def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1, slope_cells: float = 1.0,
-                clamp: float = 10.0, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None) -> torch.Tensor:
+                clamp: float = 10.0, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
+                contact_band: float = 0.0) -> torch.Tensor:
     """Logit volume (res+1)³ [x, y, z] of the visual hull: ≈ signed distance (in cells) × 2/slope_cells,
     positive inside; points outside the unit sphere (or below the support plane ``ground``) are free. Returns a
     float32 tensor on masks' device."""
     pts = grid_points(res, device=masks.device)
-    free = outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes) | (pts.norm(dim=-1) > 1.0)
+    free = outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes, contact_band=contact_band) \
+        | (pts.norm(dim=-1) > 1.0)
     inside = (~free).view(res + 1, res + 1, res + 1).cpu().numpy()
     if not inside.any():
         return torch.full((res + 1,) * 3, -clamp, device=masks.device)
@@ -76,13 +86,13 @@ def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: 
 
 def hull_bounding_sphere(P: torch.Tensor, masks: torch.Tensor, res: int = 64, min_views: int = 1,
                          margin: float = 1.1, ground: np.ndarray | None = None,
-                         sizes: torch.Tensor | None = None) -> tuple[np.ndarray, float] | None:
+                         sizes: torch.Tensor | None = None, contact_band: float = 0.0) -> tuple[np.ndarray, float] | None:
     """Centre and radius (this frame) of a sphere around the visual hull of the masks (above the support plane
     ``ground``), × ``margin`` plus one cell; ``None`` when the hull is empty or already fills the unit sphere (no
     tighter frame to gain)."""
     pts = grid_points(res, device=masks.device)
     pts = pts[pts.norm(dim=-1) <= 1.0]
-    inside = pts[~outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes)]
+    inside = pts[~outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes, contact_band=contact_band)]
     if inside.shape[0] < 8:
         return None
     lo, hi = inside.min(0).values, inside.max(0).values

@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from . import losses as L
 from .appearance import ViewAppearance
+from .cameras import plane_height
 from .data import RaySampler, SceneData
 from .device import resolve_device
 from .fields import FieldConfig, finite_difference_normals, make_field
@@ -108,6 +109,10 @@ class TrainConfig:
     """Resolution of the visual-hull volume."""
     carve_min_views: int = 1
     """Views that must see a point outside their mask before it is carved."""
+    contact_band: float = 0.05
+    """Height above the support plane (working-sphere radii) where the object meets the floor or table: there a
+    point is carved, and a mask-background ray's surface point pushed free, only when ≥ 2 views' masks say so
+    (automatic masks are least sure at the contact line; one view missing it cut the bottom off a lying book)."""
     appearance: bool = False
     """Fit a per-view colour transform (exposure and white balance: a gain per channel and view,
     see dvr/appearance.py) between the shared texture field and each photo; the fitted gains are written to
@@ -184,7 +189,7 @@ class Trainer:
         self.cfg = cfg
         if cfg.fit_frame:
             sphere = hull_bounding_sphere(data.P, data.masks, cfg.hull_res, cfg.carve_min_views, cfg.frame_margin,
-                                          ground=data.cams.ground, sizes=data.sizes)
+                                          ground=data.cams.ground, sizes=data.sizes, contact_band=cfg.contact_band)
             if sphere is not None:
                 data = data.reframe(*sphere)
         self.data = data
@@ -205,7 +210,7 @@ class Trainer:
             self.model.resize_base(cfg.coarse_res)
         if cfg.hull_init:
             vol = hull_logits(data.P, data.masks, cfg.hull_res, cfg.carve_min_views, ground=data.cams.ground,
-                              sizes=data.sizes)
+                              sizes=data.sizes, contact_band=cfg.contact_band)
             if cfg.depth_carve_init and data.depth_val is not None:
                 o, d = data.rays(data.depth_views, data.depth_uv)
                 vol = carve_along_rays(vol, o, d, data.depth_val - cfg.depth_free_margin,
@@ -289,6 +294,29 @@ class Trainer:
         a = step / max(1, c.iterations - 1)
         return int(round(c.n_steps + a * (c.n_steps_final - c.n_steps)))
 
+    def carved(self, pts: torch.Tensor) -> torch.Tensor:
+        """(M,) True where the masks carve the points (:func:`outside_hull` with this run's rules)."""
+        return outside_hull(pts, self.data.P, self.data.masks, self.cfg.carve_min_views, ground=self.data.cams.ground,
+                            sizes=self.data.sizes, contact_band=self.cfg.contact_band)
+
+    def below_support(self, pts: torch.Tensor) -> torch.Tensor:
+        """(M,) True for points below the support plane (none without one)."""
+        g = self.data.cams.ground
+        return torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device) if g is None else plane_height(g, pts) < 0
+
+    def contact_doubt(self, pts: torch.Tensor) -> torch.Tensor:
+        """(M,) True for points in the contact band above the support plane that fewer than two views' masks
+        carve: one mask calling them background is not enough to push them free."""
+        g, band = self.data.cams.ground, self.cfg.contact_band
+        out = torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device)
+        if g is None or band <= 0 or pts.shape[0] == 0:
+            return out
+        hgt = plane_height(g, pts)
+        near = (hgt >= 0) & (hgt < band)
+        if near.any():
+            out[near] = ~self.carved(pts[near])
+        return out
+
     def losses(self, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         c, w, m = self.cfg, self.cfg.weights, self.model
         o, d, rgb, mask, view = self.sampler.sample(c.batch_rays)
@@ -319,14 +347,14 @@ class Trainer:
         fs_d = torch.where(hit, res.depth, torch.where(st == INSIDE, res.near, rand_d))
         fs = ((~inm) & (st != INSIDE)) | (st == INSIDE)
         fs_pts = (o + fs_d[:, None] * d)[fs]
+        fs_pts = fs_pts[~self.contact_doubt(fs_pts)]
         # occupancy: mask rays that miss → point of largest logit
         oc = inm & (st == MISS)
         oc_pts = (o + res.max_depth[:, None] * d)[oc]
         if c.hull_gate and oc_pts.shape[0]:
             # a mask pixel whose best point the other masks carve is a mask error, not missing surface: pushing it
             # occupied against the carving grows floaters (a speck of floor kept in one view's automatic mask)
-            oc_pts = oc_pts[~outside_hull(oc_pts, self.data.P, self.data.masks, c.carve_min_views,
-                                          sizes=self.data.sizes)]
+            oc_pts = oc_pts[~self.carved(oc_pts)]
         terms["freespace"] = torch.zeros((), device=o.device)
         terms["occupancy"] = torch.zeros((), device=o.device)
 
@@ -353,7 +381,7 @@ class Trainer:
         # carving: random points of the unit sphere outside the visual hull
         cp = torch.randn(c.carve_points, 3, device=o.device)
         cp = cp / cp.norm(dim=-1, keepdim=True) * torch.rand(c.carve_points, 1, device=o.device) ** (1 / 3)
-        carve_pts = cp[outside_hull(cp, self.data.P, self.data.masks, c.carve_min_views, sizes=self.data.sizes)]
+        carve_pts = cp[self.carved(cp) & ~self.below_support(cp)]  # below it the field is clipped already
 
         # one field evaluation for all classification points
         nf, no, nd = fs_pts.shape[0], oc_pts.shape[0] + dep_pts.shape[0], free_pts.shape[0]

@@ -19,6 +19,7 @@ import numpy as np
 
 from dvr.cameras import decompose_projection, save_cameras, sphere_frame
 
+from .board import board_support, use_board
 from .cameras_config import CamerasConfig
 from .config import config_hash
 from .photos import PHOTO_EXTS, is_readable, read_photo, read_upright
@@ -282,13 +283,17 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
             pts.append(p.xyz), cols.append(p.color)
     pts = np.asarray(pts).reshape(-1, 3)
     cols = np.asarray(cols, np.uint8).reshape(-1, 3)
+    Rs, ts, pts, fit = use_board(ws.root, und, kept, Ks, Rs, ts, sizes, pts, cfg)  # a printed board: metres
     centers = -np.einsum("nji,nj->ni", Rs, ts)
     Ps = Ks @ np.concatenate([Rs, ts[:, :, None]], 2)
-    support = find_support(pts, centers, Rs, axes_convergence(centers, Rs[:, 2, :])) if cfg.support else None
+    target = axes_convergence(centers, Rs[:, 2, :])
+    support = board_support(pts, centers, target) if fit is not None and cfg.support else None  # the board's plane
+    support = support or (find_support(pts, centers, Rs, target) if cfg.support else None)
     S = normalization(pts, Ps, sizes, centers, Rs[:, 2, :], cfg.radius_margin, focals=Ks[:, 0, 0], support=support)
     save_cameras(ws.cameras, Ks, Rs, ts, S, None if support is None else support.vector)
     write_points(ws.root / "points.ply", pts, cols)
-    return {"views": kept, "radius": float(S[0, 0]), "center": S[:3, 3].tolist(), "support": support_info(support, S)}
+    return {"views": kept, "radius": float(S[0, 0]), "center": S[:3, 3].tolist(), "support": support_info(support, S),
+            **({"board": fit.info(len(names))} if fit is not None else {})}
 
 
 def support_info(support: SupportPlane | None, S: np.ndarray) -> dict | None:

@@ -51,6 +51,19 @@ class CamerasConfig:
     """Find the surface the object stands on (a robust plane fit of the SfM points: horizontal, under the cameras,
     under the point they converge on, around the object); every later stage then treats it as background and
     nothing below it as object. Without one (held, hung, plain backdrop), nothing changes."""
+    board: bool = True
+    """Look for a printed ChArUco board in the photos (``python -m pipeline board board.png`` prints one). When its
+    corners are seen, the SfM frame becomes the board's: cameras.npz, points and meshes in metres (origin at the
+    board's centre, z up), the board's plane is the support plane, and ``board.json`` says what was found. No
+    board seen: nothing changes."""
+    board_squares: tuple[int, int] = (5, 7)
+    """Squares of the printed board (columns, rows)."""
+    board_square_mm: float = 35.0
+    """Side of one board square as printed (mm): measure it with a ruler; the metric scale is exactly as good."""
+    board_marker_mm: float = 26.0
+    """Side of one ArUco marker of the board as printed (mm), smaller than a square."""
+    board_dictionary: str = "DICT_4X4_50"
+    """ArUco dictionary of the board's markers (an OpenCV name, e.g. DICT_4X4_50, DICT_5X5_100)."""
 
 
 @dataclass
@@ -119,6 +132,38 @@ class TextureConfig:
     """Photo pixels within this distance of a depth discontinuity or silhouette count as edge pixels."""
     edge_weight: float = 0.02
     """Weight factor of samples that use an edge pixel (they blend foreground and background in real photos)."""
+    silhouette_px: int = 0
+    """Photo pixels within this distance of the mesh's silhouette against the background (where the mesh is a
+    little too large they show the background: the fringe) count only for texels nothing else sees, and those
+    texels then take the fallback colour (texture field, else the nearest seen texel). 0: off, they count as edge
+    pixels. 1 removes the fringe on a 3 % too large mesh but costs 0.7 dB at one held-out view of the exact-geometry
+    cow (its silhouette pixels are right there), so it is off by default until measured on real captures."""
+    edge_fallback_only: bool = True
+    """Samples that use an edge pixel count only for texels that no clean sample sees (else they blend in at
+    ``edge_weight``): background colour beside a silhouette does not reach a texel another view sees cleanly."""
+    outlier_threshold: float = 0.1
+    """Photo-consistency: a second blending pass weights every sample by 1 / (1 + (d / this)²), d its RMS colour
+    distance to the texel's robust colour (per channel, the mean without the largest and smallest sample), so a
+    highlight, shadow or occluder one view alone sees does not reach the texture; 0: off."""
+    outlier_reject: float = 3.0
+    """Samples farther than this × ``outlier_threshold`` from the robust colour are dropped where 3 or more views
+    see the texel."""
+    sharpness_power: float = 0.5
+    """Prefer sharp views: weights × (1 + c / ``sharpness_floor``)^this, c the photo's local contrast per unit
+    length on the surface (blurred Sobel magnitude × focal / distance; lower in a defocused or shaken view); 0: off."""
+    sharpness_floor: float = 2.0
+    """Contrast (grey levels of 1 per normalized unit) below which a view counts as flat: weak texture barely
+    changes the weights."""
+    seam_levelling: bool = True
+    """Global seam levelling: per view an RGB offset per mesh vertex, solved in least squares (scipy sparse) so that
+    overlapping views agree, added to the view's samples before blending (exposure, white balance and lighting
+    steps between views do not become seams)."""
+    seam_smoothness: float = 10.0
+    """Weight of equal offsets at the two ends of a mesh edge, per sample of data (larger: smoother offsets)."""
+    seam_zero_pull: float = 0.01
+    """Weight of the pull of every offset towards 0, per sample of data (keeps the problem well posed)."""
+    seam_fit_texels: int = 200000
+    """Texels (drawn with a fixed seed) the offsets are fitted on; all texels get them."""
     frame: Literal["sfm", "normalized"] = "sfm"
     """Frame of the textured outputs: 'sfm' (that of cameras.npz) or 'normalized'."""
     device: str = "auto"

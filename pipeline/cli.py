@@ -135,6 +135,25 @@ class SynthArgs:
     """Output workspace folder."""
 
 
+@dataclass
+class BoardArgs:
+    """Write a printable ChArUco board (A4, true size at --dpi) for metric scale: print it at 100 %, check that a
+    square measures --square-mm with a ruler, and photograph the object standing on it."""
+
+    out: tyro.conf.Positional[Path]
+    """PNG file to write (e.g. board.png)."""
+    squares: tuple[int, int] = (5, 7)
+    """Squares (columns, rows); the cameras stage's --cameras-cfg.board-squares must match."""
+    square_mm: float = 35.0
+    """Side of a square (mm); --cameras-cfg.board-square-mm is what you measure on the print."""
+    marker_mm: float = 26.0
+    """Side of a marker (mm), smaller than a square."""
+    dictionary: str = "DICT_4X4_50"
+    """ArUco dictionary of the markers."""
+    dpi: int = 300
+    """Dots per inch of the page (recorded in the PNG)."""
+
+
 def _parse(cls, section: str | None, argv: list[str], prog: str, field_name: str | None = None):
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--config", type=Path, default=None)
@@ -153,6 +172,16 @@ def _synth(argv):
     meta = write_scene(load_scene_file(a.scene), a.out)
     print(f"synth: {meta['n_views']} views (+{meta['n_heldout']} held out) in {meta['seconds']:.1f} s → {a.out}; "
           f"passes: {', '.join(meta['passes'])}")
+
+
+def _board(argv):
+    from .board import board_spec, write_page
+
+    a = _parse(BoardArgs, None, argv, "python -m pipeline board")
+    spec = board_spec(a.squares, a.square_mm, a.marker_mm, a.dictionary, "python -m pipeline board")
+    path = write_page(a.out, spec, a.dpi)
+    print(f"board: {spec.describe()} on an A4 page at {a.dpi} dpi → {path}; print at 100 % (no fit to page) and "
+          f"check that a square measures {a.square_mm:g} mm")
 
 
 def _cameras(argv):
@@ -204,7 +233,8 @@ def _report(argv):
     report.run(Workspace(a.workspace), a.force)
 
 
-COMMANDS = {"synth": _synth, "cameras": _cameras, "masks": _masks, "depth": _depth, "train": _train, "mesh": _mesh, "texture": _texture, "report": _report}
+COMMANDS = {"synth": _synth, "cameras": _cameras, "masks": _masks, "depth": _depth, "train": _train, "mesh": _mesh, "texture": _texture, "report": _report,
+            "board": _board}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,6 +13,7 @@ from dvr.device import resolve_device
 from dvr.extract import extract_mesh
 from dvr.trainer import load_model
 
+from .board import mesh_units
 from .config import MeshConfig, config_hash
 from .workspace import StageError, Workspace
 
@@ -100,7 +101,8 @@ def run(ws: Workspace, cfg: MeshConfig, force: bool = False) -> bool:
         cc = torch.cat([field.texture(pts[s : s + 65536]) for s in range(0, len(pts), 65536)]) if len(pts) else \
             torch.zeros(0, 3)
     _export(clean, cv, cf, (cc.clamp(0, 1) * 255).round().byte().cpu().numpy(), scale_mat, to_norm, cfg.frame)
+    units = mesh_units(ws.root, cfg.frame)  # {} unless a printed board put cameras.npz in metres
     ws.mark_done("mesh", h, time.perf_counter() - t0, {"raw_faces": int(len(f)), "clean_faces": int(len(cf)),
-                                                              "frame": cfg.frame})
-    print(f"mesh: {len(f)} raw faces, {len(cf)} clean faces → {clean}")
+                                                              "frame": cfg.frame, **units})
+    print(f"mesh: {len(f)} raw faces, {len(cf)} clean faces{' (metres)' if units else ''} → {clean}")
     return True

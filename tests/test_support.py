@@ -133,6 +133,25 @@ def test_hull_is_empty_below_the_support():
     assert (lg[16, 16, z < -0.25] < 0).all() and (lg[16, 16, (z > -0.15) & (z < 0.5)] > 0).all()
 
 
+def test_one_mask_cannot_carve_the_contact_band():
+    """Where the object meets its support an automatic mask that misses it in one view carves nothing; above the
+    band one view still carves, and without the band the strip is lost."""
+    from dvr.hull import outside_hull
+
+    C, R = _ring(height=1.0, target=(0.0, 0.0, 0.0))
+    t = -np.einsum("nij,nj->ni", R, C)
+    K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(C), 1, 1))
+    P = torch.from_numpy(K @ np.concatenate([R, t[:, :, None]], 2)).float()
+    masks = torch.ones(len(C), 240, 320)
+    masks[0] = 0.0  # view 0's mask misses everything
+    plane = np.array([0.0, 0.0, 1.0, 0.2])  # z = −0.2
+    pts = torch.tensor([[0.0, 0.0, -0.18], [0.0, 0.0, 0.3]])  # 0.02 above the plane; well above it
+    assert outside_hull(pts, P, masks, ground=plane).tolist() == [True, True]
+    assert outside_hull(pts, P, masks, ground=plane, contact_band=0.05).tolist() == [False, True]
+    masks[1] = 0.0  # two views agree: carved
+    assert outside_hull(pts, P, masks, ground=plane, contact_band=0.05).tolist() == [True, True]
+
+
 def test_no_support_through_the_object_itself():
     """A plane of many points with points on both sides of it (window sills across a facade) is no table."""
     C, R = _ring()

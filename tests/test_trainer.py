@@ -112,3 +112,24 @@ def test_fitted_frame_is_saved_and_consistent(small_ws, tmp_path):
     v = np.asarray(gt.vertices)
     v_f = (v - scale[:3, 3]) / scale[0, 0]
     assert np.abs(v_f).max() < 1.0  # the whole object is inside the working sphere
+
+
+def test_one_mask_cannot_push_the_contact_band_free(small_ws, tmp_path):
+    """Within ``contact_band`` above the support plane a mask-background ray's surface point is pushed free only
+    when two views' masks carve it (one automatic mask missing the contact strip cut the bottom off a book)."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    data = load_scene(small_ws, torch.device("cpu"))
+    t = Trainer(tiny_cfg(iterations=1), data, tmp_path)
+    t.data.masks[:] = 1.0
+    t.data.masks[0] = 0.0  # view 0 alone calls everything background
+    t.data.cams = replace(t.data.cams, ground=np.array([0.0, 0.0, 1.0, 0.3]))  # z = −0.3
+    pts = torch.tensor([[0.0, 0.0, -0.28], [0.0, 0.0, 0.3]])  # in the band; well above it
+    assert t.contact_doubt(pts).tolist() == [True, False]
+    t.data.masks[1] = 0.0  # a second view agrees: free
+    assert t.contact_doubt(pts).tolist() == [False, False]
+    t.cfg.contact_band = 0.0
+    t.data.masks[1] = 1.0
+    assert t.contact_doubt(pts).tolist() == [False, False]  # no band: one view is enough

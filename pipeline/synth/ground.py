@@ -6,11 +6,15 @@ reach it never see the backdrop), and hides whatever of the object lies below it
 pattern of the plane coordinates (``wood`` planks, ``tiles`` with grout, ``checker``, quantised ``noise``). With
 lighting on it is shaded by the scene's lights with a soft shadow: each light is an area light sampled by a fixed
 set of directions (the same in every view, so the shadow is part of the floor, as a real one is), and the ambient
-term is darkened near the object (a contact shadow, ``shadow`` strength, ``softness`` radius).
+term is darkened near the object (a contact shadow, ``shadow`` strength, ``softness`` radius). With ``board``
+a printed ChArUco board on white paper lies on it under the object (the scene's metric scale: ``metres_per_unit``).
 """
 
 from __future__ import annotations
 
+import functools
+
+import cv2
 import numpy as np
 
 from .scene import Effect
@@ -92,7 +96,51 @@ def ground_albedo(xy: np.ndarray, e: Effect) -> np.ndarray:
         out = c1 + (c2 - c1) * (0.8 * n[:, :1] + 0.2 * n)
     else:
         raise ValueError(f"unknown ground pattern '{e.pattern}' ({', '.join(PATTERNS)})")
+    if e.board:
+        out = _with_board(xy, e, out)
     return np.clip(out, 0.0, 1.0)
+
+
+PAPER, INK = 0.9, 0.05
+"""Albedo of the board's white paper and of its black print."""
+BOARD_MARGIN_M = 0.015
+"""White paper around the printed board (m)."""
+BOARD_PX = 64
+"""Texture pixels per board square (bilinear sampling; a square spans ≈ 65 photo pixels in the board scenes)."""
+
+
+@functools.lru_cache(maxsize=4)
+def _board_texture(squares: tuple[int, int], square_mm: float, marker_mm: float, dictionary: str) -> np.ndarray:
+    from ..board import board_spec, board_texture
+
+    spec = board_spec(squares, square_mm, marker_mm, dictionary, "scene ground effect")
+    return board_texture(spec, BOARD_PX).astype(np.float32) / 255.0
+
+
+def board_spec_of(e: Effect):
+    """The :class:`pipeline.board.BoardSpec` of a ground effect's board."""
+    from ..board import board_spec
+
+    return board_spec(e.board, e.board_square_mm, e.board_marker_mm, e.board_dictionary, "scene ground effect")
+
+
+def _with_board(xy: np.ndarray, e: Effect, out: np.ndarray) -> np.ndarray:
+    """``out`` with the printed board (and its paper) where it lies: centred at the origin of the plane, its rows
+    along x, the top of the print towards +y (x_board = x, y_board = −y in metres, board frame y down)."""
+    spec = board_spec_of(e)
+    w, h = spec.size_m
+    m = xy * e.metres_per_unit
+    bx, by = m[:, 0] + w / 2, h / 2 - m[:, 1]
+    paper = (bx > -BOARD_MARGIN_M) & (bx < w + BOARD_MARGIN_M) & (by > -BOARD_MARGIN_M) & (by < h + BOARD_MARGIN_M)
+    tex = _board_texture(tuple(spec.squares), e.board_square_mm, e.board_marker_mm, e.board_dictionary)
+    u = (bx[paper] / spec.square_m * BOARD_PX - 0.5).astype(np.float32)
+    v = (by[paper] / spec.square_m * BOARD_PX - 0.5).astype(np.float32)
+    val = np.concatenate([cv2.remap(tex, u[s:s + 32000][None], v[s:s + 32000][None], cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)[0]
+                          for s in range(0, len(u), 32000)]) if len(u) else np.zeros(0, np.float32)
+    out = out.copy()
+    out[paper] = (INK + (PAPER - INK) * val.astype(float))[:, None]
+    return out
 
 
 def light_directions(direction: np.ndarray, n: int = LIGHT_SAMPLES, radius: float = LIGHT_RADIUS) -> np.ndarray:

@@ -7,7 +7,7 @@ to ``gt/scene.json`` so tests can check it.
 Written (DESIGN.md layout): ``images/``, ``masks/`` (unless ``write_masks: false``), ``cameras.npz``
 (world_mat_i in the world = "SfM" frame, scale_mat: canonical/normalized → world), ``depth/`` when
 ``sparse_depth`` > 0, and ``gt/``: ``mesh.ply`` (world frame), ``depth/*.npy`` (ray depth, normalized
-frame, 0 on background), ``heldout/`` views, ``scene.json``.
+frame, 0 on background), ``heldout/`` views, ``scene.json``, ``board.json`` (a ground effect's printed board).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from skimage import measure
 from dvr.cameras import save_cameras, sphere_bounds
 
 from ..raycast import mesh_intersector
-from .ground import ground_albedo, ground_shading, plane_hits
+from .ground import board_spec_of, ground_albedo, ground_shading, plane_hits
 from .scene import Effect, Scene, Shape
 
 
@@ -512,4 +512,19 @@ def write_scene(scene: Scene, out: str | Path) -> dict:
     (out / "gt" / "scene.json").write_text(json.dumps(meta, indent=1))
     if "exposure" in listed:
         (out / "gt" / "exposure.json").write_text(json.dumps(exposure, indent=1))
+    if ground is not None and ground.board:
+        (out / "gt" / "board.json").write_text(json.dumps(board_truth(ground, s, off, ground_z), indent=1))
     return meta
+
+
+def board_truth(ground: Effect, s: float, off: np.ndarray, ground_z: float) -> dict:
+    """Ground truth of a scene's printed board: its definition, metres per world (GT camera) unit, and the world →
+    board frame similarity (metres, origin at the board's centre, z up; as ``pipeline/board.py`` recovers it)."""
+    spec = board_spec_of(ground)
+    k = ground.metres_per_unit / s
+    T = np.eye(4)
+    T[:3, :3] *= k
+    T[:3, 3] = -k * off - np.array([0.0, 0.0, ground.metres_per_unit * ground_z])
+    return {"board": spec.describe(), "squares": list(spec.squares), "square_m": spec.square_m,
+            "marker_m": spec.marker_m, "dictionary": spec.dictionary, "metres_per_unit": ground.metres_per_unit,
+            "metres_per_world_unit": k, "world_to_board": T.tolist()}

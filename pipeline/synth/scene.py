@@ -87,7 +87,7 @@ class Effect:
     colour channel's gain on top; the gains of every view are written to ``gt/exposure.json``) | distortion (k1) |
     blur (sigma px) |
     specular (amount, shininess) | ground (pattern, scale, color, color2, shadow, softness, sink, seed: a plane
-    the object rests on, see ``ground.py``)."""
+    the object rests on, see ``ground.py``; board, board_*, metres_per_unit: a printed ChArUco board on it)."""
     sigma: float = 0.01
     amount: float = 0.2
     white_balance: float = 0.0
@@ -108,6 +108,18 @@ class Effect:
     """ground: radius of the contact shadow (canonical units)."""
     sink: float = 0.004
     """ground: how far the object sinks into the plane (so it touches wherever it rests)."""
+    board: list[int] = field(default_factory=list)
+    """ground: squares (columns, rows) of a printed ChArUco board lying on it, centred under the object, its rows
+    along x, on white paper 15 mm wider all round ([]: no board; see ``pipeline/board.py``)."""
+    board_square_mm: float = 35.0
+    """ground: side of a board square (mm)."""
+    board_marker_mm: float = 26.0
+    """ground: side of a board marker (mm)."""
+    board_dictionary: str = "DICT_4X4_50"
+    """ground: ArUco dictionary of the board."""
+    metres_per_unit: float = 0.1
+    """ground with a board: metres per canonical unit (the board's printed size fixes the scene's scale; written to
+    ``gt/board.json``)."""
     seed: int = 3
 
 
