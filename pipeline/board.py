@@ -21,6 +21,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dvr.metrics import umeyama
+
 from .support import SupportPlane
 from .workspace import StageError
 
@@ -141,18 +143,6 @@ def triangulate(P: list[np.ndarray], uv: list[np.ndarray]) -> tuple[np.ndarray, 
     X = X[:3] / X[3] if abs(X[3]) > 1e-12 else np.full(3, np.inf)
     err = max(float(np.linalg.norm((p @ np.append(X, 1))[:2] / (p @ np.append(X, 1))[2] - u)) for p, u in zip(P, uv))
     return X, err
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) with dst ≈ s R src + t, least squares (Umeyama 1991), proper rotation."""
-    ms, md = src.mean(0), dst.mean(0)
-    a, b = src - ms, dst - md
-    U, D, Vt = np.linalg.svd(b.T @ a / len(src))
-    E = np.eye(3)
-    E[2, 2] = np.sign(np.linalg.det(U @ Vt)) or 1.0
-    R = U @ E @ Vt
-    s = float(np.trace(np.diag(D) @ E) / (a ** 2).sum(1).mean())
-    return s, R, md - s * R @ ms
 
 
 def board_points(spec: BoardSpec, ids: np.ndarray) -> np.ndarray:

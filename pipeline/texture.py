@@ -229,8 +229,8 @@ class ViewSampler:
         edges = [depth_edges(d, cfg.depth_tolerance, cfg.edge_px) for d in self.depths]
         if cfg.sharpness_power <= 0:
             return edges, None
-        sharp = [sharpness_map(im, depth_edges(d, cfg.depth_tolerance, cfg.edge_px + 1))
-                 for im, d in zip(self.images, self.depths)]
+        grow = np.ones((3, 3), np.uint8)  # the edges one pixel wider: depth_edges(…, edge_px + 1)
+        sharp = [sharpness_map(im, cv2.dilate(e.astype(np.uint8), grow) > 0) for im, e in zip(self.images, edges)]
         return edges, sharp
 
     def subset(self, sel: np.ndarray) -> "ViewSampler":
