@@ -28,6 +28,7 @@ SCENES = {
     "book": ROOT / "configs" / "scenes" / "book_floor.yaml",
     "cow_float": ROOT / "configs" / "scenes" / "cow_backdrop.yaml",
     "sphere": ROOT / "configs" / "scenes" / "sphere_checker.yaml",
+    "torus_board": ROOT / "configs" / "scenes" / "torus_board.yaml",
 }
 HELDOUT = "heldout_"
 """Prefix of the held-out photos in a photos-only run's folder (sorted after the training photos)."""
@@ -245,7 +246,22 @@ def run_cameras(spec: dict, work: Path, conditions: dict) -> dict:
         gt_R = gtc.R[idx]
     out["registered"] = f"{len(idx)}/{len(gtc)}"
     out["pose"] = pose_errors(sfm_centres(est), est.R, sfm_centres(gtc)[idx], gt_R)
+    if (syn / "gt" / "board.json").exists() and (ws / "board.json").exists():
+        out["metric"] = metric_error(est, gtc, idx, json.loads((syn / "gt" / "board.json").read_text()))
     return out
+
+
+def metric_error(est, gtc, idx: list[int], gt_board: dict) -> dict:
+    """A printed board put the cameras in metres in the board's frame: their centres against the true ones in that
+    frame, without any alignment (mm), and the scale of the similarity between the two (1: metric scale exact)."""
+    from dvr.metrics import umeyama
+
+    T = np.asarray(gt_board["world_to_board"])
+    gt = sfm_centres(gtc)[idx] @ T[:3, :3].T + T[:3, 3]
+    err = np.linalg.norm(sfm_centres(est) - gt, axis=1)
+    s, _, _ = umeyama(gt, sfm_centres(est))
+    return {"centre_err_mm_mean": float(1000 * err.mean()), "centre_err_mm_max": float(1000 * err.max()),
+            "scale": float(s)}
 
 
 def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
@@ -277,13 +293,16 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     from dvr.metrics import masked_psnr
     from pipeline.texture import render_textured
 
-    psnr, psnr_hit, cover = [], [], []
-    for i in held:
+    psnr, psnr_hit, cover, psnr_train = [], [], [], []
+    for i in range(len(names)):
         photo = _read_rgb(paths[i])
         h, w = photo.shape[:2]
         img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, cams.K[i], cams.R[i],
                                    sfm_centres(cams)[i], w, h)
         mask = _read_mask(full / "masks" / f"{names[i]}.png")
+        if i not in held:  # the textured mesh at the photos it was made from
+            psnr_train.append(masked_psnr(img, photo, mask | hit))
+            continue
         psnr.append(masked_psnr(img, photo, mask | hit))
         psnr_hit.append(masked_psnr(img, photo, hit))
         cover.append(float((mask & hit).sum() / max(1, mask.sum())))
@@ -291,6 +310,7 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     secs = {**shared, **{k: v for k, v in Workspace(ws).seconds().items() if k not in shared}}
     stamp = Workspace(full).stamp("cameras") or {}
     return {"seconds": secs, "chamfer_rel": None, "fscore": None, "psnr": float(np.mean(psnr)), "pose": pose,
-            "psnr_on_model": float(np.mean(psnr_hit)), "mask_covered": float(np.mean(cover)),
+            "psnr_on_model": float(np.mean(psnr_hit)), "psnr_train": float(np.mean(psnr_train)),
+            "mask_covered": float(np.mean(cover)),
             "registered": f"{len(names)}/49", "support": stamp.get("support"), "rung": stamp.get("rung"),
             "views": {"train": len(names) - len(held), "heldout": len(held), "registered": len(names)}}

@@ -82,6 +82,8 @@ def _psnr(r: dict) -> str:
     txt = _fmt(r["psnr"], "{:.1f}")
     if r.get("psnr_gt_pose") is not None:
         txt += f" ({r['psnr_gt_pose']:.1f} at GT pose)"
+    if r.get("psnr_train") is not None:
+        txt += f" (training views {r['psnr_train']:.1f})"
     return txt
 
 
@@ -122,6 +124,10 @@ def cameras_table(results: list[dict]) -> str:
             "stopped with a clear error" if r.get("stopped") else "–"
         sup = r.get("support")
         sp = f"{sup['inliers']} points, object {sup['object_height']:.2f} high" if sup else "none"
+        if r.get("metric"):  # a printed board: metres, no alignment
+            mt = r["metric"]
+            pe += f"; in metres: centres {mt['centre_err_mm_mean']:.1f} mm off (max {mt['centre_err_mm_max']:.1f}), " \
+                  f"scale ×{mt['scale']:.4f}"
         climbed = " → ".join(x["rung"] for x in r.get("rungs") or [])
         lines.append(f"| {r['condition']} | {r.get('rung') or '–'} ({climbed}) | {r['registered']} | {pe} | "
                      f"{r['seconds'].get('cameras', 0):.0f} | {sp} |")

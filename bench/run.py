@@ -80,6 +80,7 @@ CONDITIONS = {
     "only 16 views": ("cow", {"cameras": {"n_views": 16, "rings": 2, "heldout": 0}}, None),
     "phone folder: EXIF 1/3/6/8, mixed sizes, JPEG": ("cow", {}, phone_folder),
     "checkered sphere (symmetric, repetitive)": ("sphere", {}, None),
+    "torus on a printed ChArUco board (metric scale)": ("torus_board", {}, None),
 }
 
 

@@ -71,14 +71,33 @@ def refine_vertices(logit_fn, verts: torch.Tensor, steps: int, max_move: float, 
     return v
 
 
+def footprint_occupancy(field, height: float):
+    """The field's occupancy logit with the band ``0 ≤ h < height`` above its support plane replaced by the vertical
+    extrusion of the cross-section at ``height`` (the flat cap on the plane kept). An object standing on a floor
+    meets it with the footprint of what stands just above, and there automatic masks are least sure (the contact
+    shadow takes the object's lowest strip). ``field.occupancy`` itself without a support plane or for height 0."""
+    if height <= 0 or field.support is None:
+        return field.occupancy
+
+    def occupancy(p: torch.Tensor) -> torch.Tensor:
+        pl = field.support.to(device=p.device, dtype=p.dtype)
+        h = p @ pl[:3] + pl[3]
+        lift = torch.where((h >= 0) & (h < height), height - h, torch.zeros_like(h))
+        return field.clip_to_support(p, field.occupancy(p + lift[:, None] * pl[:3]))
+
+    return occupancy
+
+
 def extract_mesh(field, resolution: int = 256, coarse_factor: int = 4, refine_steps: int = 2, level: float = 0.0,
-                 device=None):
-    """Mesh of the level set in the normalized frame: vertices (V, 3) float64, faces (F, 3), colours (V, 3) uint8.
+                 device=None, footprint: float = 0.0):
+    """Mesh of the level set in the normalized frame: vertices (V, 3) float64, faces (F, 3), colours (V, 3) uint8;
+    ``footprint`` > 0: the lowest band above the support plane extruded (:func:`footprint_occupancy`).
 
     Returns empty arrays when the field has no surface.
     """
     device = device or next(field.parameters()).device
-    vol, _ = logit_volume(field.occupancy, resolution, coarse_factor, device=device)
+    occupancy = footprint_occupancy(field, footprint)
+    vol, _ = logit_volume(occupancy, resolution, coarse_factor, device=device)
     vol = vol - level
     if not (vol.min() < 0 < vol.max()):
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8)
@@ -87,7 +106,7 @@ def extract_mesh(field, resolution: int = 256, coarse_factor: int = 4, refine_st
     faces = faces[:, ::-1].copy()  # outward normals: occupancy > 0 inside
     vt = torch.from_numpy(verts).float().to(device)
     if refine_steps > 0:
-        vt = refine_vertices(lambda p: field.occupancy(p), vt, refine_steps, 0.5 * 2.0 / resolution, level)
+        vt = refine_vertices(occupancy, vt, refine_steps, 0.5 * 2.0 / resolution, level)
     with torch.no_grad():
         cols = torch.cat([field.texture(vt[s : s + 65536]) for s in range(0, vt.shape[0], 65536)])
     colors = (cols.clamp(0, 1) * 255).round().byte().cpu().numpy()

@@ -134,8 +134,17 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     work.mkdir()
     tried, best, rejected = [], None, {}
     for rung in ladder(cfg.start_rung, cfg.last_rung, cfg.max_features):
+        base = None
+        if rung.mapper == "extend":  # continue from the best model so far: only when it lacks photos
+            if best is None or best[1].num_reg_images() >= len(names):
+                continue
+            base = (work / "merge-base", best[3])
+            shutil.rmtree(base[0], ignore_errors=True)
+            base[0].mkdir()
+            best[1].write(base[0])
         t0 = time.perf_counter()
-        rec, database, secs, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed)
+        rec, database, secs, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed,
+                                            base)
         dt = time.perf_counter() - t0
         if rec is None or rec.num_reg_images() < 2:
             print(f"cameras: rung {rung.name}: {err or 'no model'} ({dt:.1f} s)")

@@ -17,11 +17,12 @@ class CamerasConfig:
     """Longest side of the training images written to images/."""
     matching: Literal["auto", "exhaustive", "sequential"] = "auto"
     """Pairs to match: 'auto' = exhaustive up to 80 images, sequential (with loop closure off) beyond."""
-    start_rung: Literal["default", "guided", "dsp", "relaxed", "global"] = "default"
+    start_rung: Literal["default", "guided", "dsp", "relaxed", "global", "merge"] = "default"
     """First rung of the SfM ladder: default SIFT → guided matching → DSP-SIFT + affine shape → relaxed mapper →
-    global mapper. A rung runs only when the one before left the model short (a photo unregistered, a poor
-    reprojection error or track length, too few points per view) or with poses that fail the sanity check."""
-    last_rung: Literal["default", "guided", "dsp", "relaxed", "global"] = "global"
+    global mapper → merge (the best model so far absorbs the photos it lacks). A rung runs only when the one before
+    left the model short (a photo unregistered, a poor reprojection error or track length, too few points per
+    view) or with poses that fail the sanity check."""
+    last_rung: Literal["default", "guided", "dsp", "relaxed", "global", "merge"] = "merge"
     """Last rung of the SfM ladder ('default': one COLMAP run, as before the ladder)."""
     max_reprojection_error: float = 1.0
     """A model whose mean reprojection error (px) exceeds this is short: the ladder climbs."""

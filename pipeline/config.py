@@ -35,6 +35,11 @@ class MeshConfig:
     """Newton steps moving vertices onto the level set (0: off)."""
     min_component_ratio: float = 0.02
     """Drop connected components with fewer faces than this fraction of the largest."""
+    footprint: float = 0.03
+    """Height above the support plane (working-sphere radii) below which the mesh is the vertical extrusion of its
+    cross-section at that height: the object meets its floor or table with the footprint of what stands just above,
+    where automatic masks lose the lowest strip to the contact shadow (the lying book from photos: 23.4 → 24.3 dB
+    held-out; cow, jar and DTU within ±0.03 dB). 0: off; no effect without a support plane."""
     smooth_iterations: int = 0
     """Taubin smoothing iterations of the clean mesh (0: off)."""
     max_faces: int = 40000

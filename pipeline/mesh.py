@@ -90,7 +90,8 @@ def run(ws: Workspace, cfg: MeshConfig, force: bool = False) -> bool:
     t0 = time.perf_counter()
     dev = resolve_device(cfg.device)
     field, scale_mat, to_norm = load_model(final, dev)
-    v, f, c = extract_mesh(field, cfg.resolution, cfg.coarse_factor, cfg.refine_steps, device=dev)
+    v, f, c = extract_mesh(field, cfg.resolution, cfg.coarse_factor, cfg.refine_steps, device=dev,
+                           footprint=cfg.footprint)
     if len(f) == 0:
         raise StageError(f"{final}: the trained field has no surface; check masks/ and retrain (--force)")
     ws.mesh.mkdir(parents=True, exist_ok=True)

@@ -8,7 +8,11 @@ images, weakly textured objects, grazing views of a floor):
 3. ``dsp``       DSP-SIFT with affine shape estimation (descriptors pooled over scales, robust to the affine
                  distortion of slanted surfaces), guided matching;
 4. ``relaxed``   the same matches, mapper thresholds relaxed (fewer inliers to start and to register a view);
-5. ``global``    the same matches, the global mapper (GLOMAP: rotation averaging + global positioning).
+5. ``global``    the same matches, the global mapper (GLOMAP: rotation averaging + global positioning);
+6. ``merge``     the best model so far absorbs the photos it lacks: incremental mapping continued from it (its own
+                 features and matches, relaxed thresholds), so the photos of the partial models the mapper split
+                 off register into the largest one (COLMAP's own merging needs photos common to both models,
+                 which its partial models do not share).
 
 A rung is *short* when a photo is unregistered, the reprojection error or track length is poor, or a view has too
 few points (:func:`shortfalls`); its model then goes through the pose sanity check (:mod:`pipeline.pose_sanity`)
@@ -29,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-RUNG_NAMES = ("default", "guided", "dsp", "relaxed", "global")
+RUNG_NAMES = ("default", "guided", "dsp", "relaxed", "global", "merge")
 
 
 @dataclass(frozen=True)
@@ -58,6 +62,7 @@ LADDER = (
     Rung("dsp", max_features=16384, dsp=True, guided=True),
     Rung("relaxed", max_features=16384, dsp=True, guided=True, relaxed=True),
     Rung("global", max_features=16384, dsp=True, guided=True, mapper="global"),
+    Rung("merge", max_features=16384, dsp=True, guided=True, relaxed=True, mapper="extend"),
 )
 
 
@@ -67,6 +72,8 @@ def ladder(start: str, stop: str, max_features: int = 8192) -> list[Rung]:
     for name in (start, stop):
         if name not in RUNG_NAMES:
             raise ValueError(f"unknown SfM rung '{name}' (one of {', '.join(RUNG_NAMES)})")
+    if start == "merge":
+        raise ValueError("the SfM rung 'merge' continues from an earlier rung's model; start at another rung")
     i, j = RUNG_NAMES.index(start), RUNG_NAMES.index(stop)
     if j < i:
         raise ValueError(f"the last SfM rung '{stop}' comes before the first '{start}'")
@@ -100,7 +107,8 @@ def _match(db: Path, n_images: int, rung: Rung, matching: str) -> None:
         pycolmap.match_sequential(db, matching_options=opts)
 
 
-def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int) -> dict:
+def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "") -> dict:
+    """Map with the rung's mapper; ``base``: a model folder to continue from (the ``extend`` mapper)."""
     import pycolmap
 
     if rung.mapper == "global":
@@ -115,15 +123,19 @@ def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int) -> dict:
         opts.mapper.init_min_tri_angle = 8.0
         opts.mapper.abs_pose_min_num_inliers = 15
         opts.mapper.abs_pose_min_inlier_ratio = 0.15
-    return pycolmap.incremental_mapping(db, images, out, opts)
+    return pycolmap.incremental_mapping(db, images, out, opts, input_path=base if rung.mapper == "extend" else "")
 
 
 def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camera_model: str, matching: str,
-              seed: int) -> None:
+              seed: int, base: list[str] | None = None) -> None:
     """Child process: features (reused when another rung made them), matches (likewise), mapping; the largest
-    model is written to ``work/<rung>/model`` and its timings to ``work/<rung>/result.json``."""
+    model is written to ``work/<rung>/model`` and its timings to ``work/<rung>/result.json``. ``base``: (model
+    folder, its database) to continue from instead (the ``extend`` mapper)."""
     r = Rung(**rung)
     work_p, images_p = Path(work), Path(images)
+    if base is not None:
+        _map_rung(work_p, images_p, r, Path(base[1]), seed, base[0], {"features": 0.0, "matching": 0.0})
+        return
     t0 = time.perf_counter()
     feats = work_p / f"features-{r.features_key}.db"
     if not feats.exists():
@@ -139,26 +151,33 @@ def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camer
         _match(tmp, sum(len(g) for g in groups), r, matching)
         tmp.rename(db)
     t2 = time.perf_counter()
-    out = work_p / r.name
+    _map_rung(work_p, images_p, r, db, seed, "", {"features": round(t1 - t0, 2), "matching": round(t2 - t1, 2)})
+
+
+def _map_rung(work: Path, images: Path, r: Rung, db: Path, seed: int, base: str, seconds: dict) -> None:
+    """Mapping of one rung; the largest model goes to ``work/<rung>/model``, the timings to ``result.json``."""
+    t0 = time.perf_counter()
+    out = work / r.name
     shutil.rmtree(out, ignore_errors=True)
     (out / "models").mkdir(parents=True)
-    recs = _map(db, images_p, out / "models", r, seed)
-    t3 = time.perf_counter()
+    recs = _map(db, images, out / "models", r, seed, base)
     best = max(recs.values(), key=lambda rec: rec.num_reg_images()) if recs else None
     if best is not None:
         (out / "model").mkdir()
         best.write(out / "model")
-    (out / "result.json").write_text(json.dumps({"database": str(db), "seconds": {
-        "features": round(t1 - t0, 2), "matching": round(t2 - t1, 2), "mapping": round(t3 - t2, 2)}}))
+    seconds = {**seconds, "mapping": round(time.perf_counter() - t0, 2)}
+    (out / "result.json").write_text(json.dumps({"database": str(db), "seconds": seconds}))
 
 
 def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, camera_model: str, matching: str,
-             seed: int = 0):
+             seed: int = 0, base: tuple[Path, Path] | None = None):
     """Run one rung in a child process (``python -m pipeline.sfm``; COLMAP's log goes to ``work/<rung>.log``);
-    returns (model or None, database path, seconds per step, error or None)."""
+    ``base``: (model folder, its database) for the ``extend`` mapper to continue from. Returns (model or None,
+    database path, seconds per step, error or None)."""
     import pycolmap
 
-    args = [str(work), str(images), groups, asdict(rung), camera_model, matching, seed]
+    args = [str(work), str(images), groups, asdict(rung), camera_model, matching, seed,
+            None if base is None else [str(base[0]), str(base[1])]]
     log = work / f"{rung.name}.log"
     with open(log, "w") as f:
         p = subprocess.run([sys.executable, "-m", "pipeline.sfm", json.dumps(args)], stdout=f, stderr=subprocess.STDOUT,

@@ -55,3 +55,41 @@ def test_symmetric_object_stops_with_a_clear_error_never_wrong_poses(tmp_path, c
     assert rc == 2 and len(err) == 1
     assert "symmetric or repetitive" in err[0] and "000000" in err[0] and "textured mat" in err[0]
     assert not (ws / "cameras.npz").exists()  # nothing reaches training
+
+
+def test_merge_rung_registers_the_photos_a_partial_model_lacks(tmp_path):
+    """The ``merge`` rung continues mapping from the best model so far: photos that model lacks (here three taken
+    out of a complete model, as when the mapper splits them into a partial model of their own) register into it,
+    at the poses the complete model had."""
+    import numpy as np
+    import pycolmap
+
+    from pipeline.sfm import LADDER, run_rung
+
+    spec = yaml.safe_load((ROOT / "configs" / "scenes" / "cow_floor.yaml").read_text())
+    spec["cameras"].update(n_views=16, rings=2, width=320, height=240, heldout=0)
+    write_scene(scene_from_dict(spec, ROOT / "configs" / "scenes"), tmp_path / "syn")
+    images = tmp_path / "syn" / "images"
+    work = tmp_path / "ladder"
+    work.mkdir()
+    groups = [sorted(p.name for p in images.glob("*.png"))]
+    full, db, _, err = run_rung(work, images, groups, LADDER[2], "SIMPLE_RADIAL", "exhaustive")  # dsp
+    assert err is None and full.num_reg_images() >= 14
+    centre = {full.image(i).name: full.image(i).projection_center() for i in full.reg_image_ids()}
+    (work / "base").mkdir()
+    full.write(work / "base")
+    partial = pycolmap.Reconstruction(work / "base")  # a copy
+    taken = sorted(centre)[3:12:4]
+    for i in list(partial.reg_image_ids()):
+        if partial.image(i).name in taken:
+            partial.deregister_frame(partial.image(i).frame_id)
+    assert partial.num_reg_images() == full.num_reg_images() - 3
+    partial.write(work / "base")
+    merged, _, _, err = run_rung(work, images, groups, LADDER[-1], "SIMPLE_RADIAL", "exhaustive",
+                                 base=(work / "base", db))
+    assert LADDER[-1].name == "merge" and err is None and merged.num_reg_images() == full.num_reg_images()
+    spread = np.ptp(np.stack(list(centre.values())), axis=0).max()
+    for i in merged.reg_image_ids():
+        im = merged.image(i)
+        if im.name in taken:  # the base's frame is kept: the poses compare directly
+            assert np.linalg.norm(im.projection_center() - centre[im.name]) < 0.01 * spread, im.name

@@ -113,6 +113,9 @@ def test_ladder_order_names_and_features():
         ladder("default", "bogus")
     with pytest.raises(ValueError, match="comes before"):
         ladder("dsp", "guided")
+    with pytest.raises(ValueError, match="continues from an earlier rung"):
+        ladder("merge", "merge")
+    assert ladder("default", "merge")[-1].mapper == "extend"
 
 
 def test_shortfalls():
