@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import factorized
+from scipy.sparse.linalg import splu
 
 
 def mesh_edges(faces: np.ndarray) -> np.ndarray:
@@ -31,7 +31,12 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
         raise ValueError(f"mesh_edges: faces must have shape (F, 3), got {faces.shape}")
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
     e.sort(axis=1)
-    return np.unique(e[e[:, 0] != e[:, 1]], axis=0)
+    e = e[e[:, 0] != e[:, 1]]
+    if not len(e):
+        return e.reshape(0, 2)
+    n = int(e.max()) + 1
+    key = np.unique(e[:, 0] * n + e[:, 1])  # the rows' lexicographic order, as np.unique(e, axis=0), several × faster
+    return np.stack([key // n, key % n], 1)
 
 
 def texel_offsets(view_offsets: np.ndarray, texel_vertices: np.ndarray, texel_bary: np.ndarray) -> np.ndarray:
@@ -42,8 +47,19 @@ def texel_offsets(view_offsets: np.ndarray, texel_vertices: np.ndarray, texel_ba
     if texel_vertices.shape != texel_bary.shape or texel_vertices.ndim != 2 or texel_vertices.shape[1] != 3:
         raise ValueError(f"texel_offsets: texel_vertices {texel_vertices.shape} and texel_bary {texel_bary.shape} "
                          "must both have shape (K, 3)")
-    corner = view_offsets[texel_vertices]  # (K, 3 corners, 3 channels)
-    return np.einsum("kc,kcj->kj", texel_bary.astype(view_offsets.dtype), corner)
+    planar = texel_offsets_planar(np.ascontiguousarray(view_offsets.T), texel_vertices.T, texel_bary.T)
+    return np.ascontiguousarray(planar.T)
+
+
+def texel_offsets_planar(view_offsets: np.ndarray, texel_vertices: np.ndarray, texel_bary: np.ndarray) -> np.ndarray:
+    """:func:`texel_offsets` channel-major: offsets (3, n_verts), corners and barycentrics (3, K) → (3, K)."""
+    bary = texel_bary.astype(view_offsets.dtype, copy=False)
+    out = np.empty((len(view_offsets), texel_vertices.shape[1]), view_offsets.dtype)
+    for o, channel in zip(out, view_offsets):
+        np.multiply(bary[0], channel.take(texel_vertices[0]), out=o)
+        o += bary[1] * channel.take(texel_vertices[1])
+        o += bary[2] * channel.take(texel_vertices[2])
+    return out
 
 
 def _check_fit_inputs(sample_view, sample_texel, sample_colour, sample_weight, texel_vertices, texel_bary,
@@ -75,17 +91,19 @@ class _ViewSystem:
     """One view's least-squares system over the vertices its samples touch (factorised once)."""
 
     def __init__(self, texel, weight, others, texel_vertices, texel_bary, edges, n_verts, smoothness, zero_pull):
-        corners = texel_vertices[texel]  # (n, 3)
-        self.vertices, local = np.unique(corners, return_inverse=True)
-        local = local.reshape(corners.shape)
+        corners = texel_vertices.take(texel, 0)  # (n, 3)
+        used = np.zeros(n_verts, bool)
+        used[corners] = True
+        self.vertices = np.flatnonzero(used)
         n, n_loc = len(texel), len(self.vertices)
+        pos = np.full(n_verts, -1)
+        pos[self.vertices] = np.arange(n_loc)
         rows = np.repeat(np.arange(n), 3)
-        self.B = sp.csr_matrix((texel_bary[texel].ravel(), (rows, local.ravel())), shape=(n, n_loc))
+        self.B = sp.csr_matrix((texel_bary.take(texel, 0).ravel(), (rows, pos.take(corners).ravel())),
+                               shape=(n, n_loc))
         data = weight * others / np.maximum(weight + others, 1e-12)  # w_v (W − w_v) / W
         self.data = data / max(float(data.mean()), 1e-12)  # mean 1: λ, μ are per sample
         per_vertex = n / max(n_loc, 1)
-        pos = np.full(n_verts, -1)
-        pos[self.vertices] = np.arange(n_loc)
         ends = pos[edges]
         ends = ends[(ends >= 0).all(1)]
         adj = sp.coo_matrix((np.ones(len(ends)), (ends[:, 0], ends[:, 1])), shape=(n_loc, n_loc))
@@ -93,12 +111,13 @@ class _ViewSystem:
         lap = sp.diags(np.asarray(adj.sum(1)).ravel()) - adj
         system = (self.B.T @ sp.diags(self.data) @ self.B + smoothness * per_vertex * lap
                   + zero_pull * per_vertex * sp.identity(n_loc))
-        self.solve = factorized(sp.csc_matrix(system))
+        # SPD: a symmetric fill-reducing order (several × less fill than splu's default COLAMD), no pivoting
+        self.lu = splu(sp.csc_matrix(system), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
 
     def offsets(self, target: np.ndarray) -> np.ndarray:
         """Per-vertex offsets (n_loc, 3) fitting the per-sample target offsets (n, 3)."""
-        rhs = self.B.T @ (self.data[:, None] * target)
-        return np.stack([self.solve(np.ascontiguousarray(rhs[:, j])) for j in range(3)], 1)
+        return self.lu.solve(np.asarray(self.B.T @ (self.data[:, None] * target)))
 
 
 def fit_seam_offsets(sample_view: np.ndarray, sample_texel: np.ndarray, sample_colour: np.ndarray,
@@ -115,7 +134,7 @@ def fit_seam_offsets(sample_view: np.ndarray, sample_texel: np.ndarray, sample_c
     samples never touch take that view's mean offset.
     """
     sample_view, sample_texel = np.asarray(sample_view), np.asarray(sample_texel)
-    sample_colour, sample_weight = np.asarray(sample_colour, np.float64), np.asarray(sample_weight, np.float64)
+    sample_colour, sample_weight = np.asarray(sample_colour), np.asarray(sample_weight)
     texel_vertices, texel_bary, faces = np.asarray(texel_vertices), np.asarray(texel_bary), np.asarray(faces)
     _check_fit_inputs(sample_view, sample_texel, sample_colour, sample_weight, texel_vertices, texel_bary,
                       faces, n_verts, n_views)
@@ -123,42 +142,53 @@ def fit_seam_offsets(sample_view: np.ndarray, sample_texel: np.ndarray, sample_c
         raise ValueError(f"fit_seam_offsets: need zero_pull > 0, smoothness >= 0, sweeps >= 1; got {zero_pull}, "
                          f"{smoothness}, {sweeps}")
     out = np.zeros((n_views, n_verts, 3), np.float32)
-    keep = sample_weight > 0
-    view, texel, colour, weight = sample_view[keep], sample_texel[keep], sample_colour[keep], sample_weight[keep]
+    view, texel, colour, weight = _by_view(sample_view, sample_texel, sample_colour, sample_weight)
     if not len(view):
         return out
+    bounds = np.searchsorted(view, np.arange(n_views + 1))
     n_tex = len(texel_vertices)
     total = np.bincount(texel, weight, n_tex)
     corrected = colour.copy()
-    acc = np.stack([np.bincount(texel, weight * colour[:, j], n_tex) for j in range(3)], 1)
-    order = np.argsort(view, kind="stable")
-    bounds = np.searchsorted(view[order], np.arange(n_views + 1))
+    acc = np.stack([np.bincount(texel, weight * c, n_tex) for c in colour])  # (3, n_tex)
     edges = mesh_edges(faces)
     systems: list[_ViewSystem | None] = [None] * n_views
     for _ in range(sweeps):
         for v in range(n_views):
-            s = order[bounds[v]:bounds[v + 1]]
+            s = slice(bounds[v], bounds[v + 1])
             t, w = texel[s], weight[s]
-            others = total[t] - w
-            if not (others > 1e-9 * total[t]).any():
+            others = total.take(t) - w
+            agree = others > 1e-9 * total.take(t)
+            if not agree.any():
                 continue  # nothing to agree with
             if systems[v] is None:
                 systems[v] = _ViewSystem(t, w, others, texel_vertices, texel_bary, edges, n_verts,
                                          smoothness, zero_pull)
-            others_mean = (acc[t] - w[:, None] * corrected[s]) / np.maximum(others, 1e-12)[:, None]
-            target = np.where((others > 1e-9 * total[t])[:, None], others_mean - colour[s], 0.0)
-            vertex_offsets = systems[v].offsets(target)
-            new = colour[s] + systems[v].B @ vertex_offsets
-            delta = w[:, None] * (new - corrected[s])
-            acc += np.stack([np.bincount(t, delta[:, j], n_tex) for j in range(3)], 1)
-            corrected[s] = new
+            others_mean = (acc.take(t, 1) - w * corrected[:, s]) / np.maximum(others, 1e-12)
+            target = np.where(agree, others_mean - colour[:, s], 0.0)
+            vertex_offsets = systems[v].offsets(target.T)
+            new = colour[:, s] + (systems[v].B @ vertex_offsets).T
+            delta = w * (new - corrected[:, s])
+            for j in range(3):
+                np.add.at(acc[j], t, delta[j])
+            corrected[:, s] = new
             out[v, systems[v].vertices] = vertex_offsets
-    shift = (weight[:, None] * (corrected - colour)).sum(0) / max(float(weight.sum()), 1e-12)  # common shift
-    for v, system in enumerate(systems):
+    shift = [np.dot(weight, c - c0) / max(float(weight.sum()), 1e-12) for c, c0 in zip(corrected, colour)]
+    for v, system in enumerate(systems):  # the common shift removed; vertices the view never sees: its mean
         if system is None:
             continue
-        out[v, system.vertices] -= shift.astype(np.float32)
+        out[v, system.vertices] -= np.asarray(shift, np.float32)
         rest = np.ones(n_verts, bool)
         rest[system.vertices] = False
         out[v, rest] = out[v, system.vertices].mean(0)
     return out
+
+
+def _by_view(view: np.ndarray, texel: np.ndarray, colour: np.ndarray, weight: np.ndarray):
+    """The samples of positive weight in view order (each view's samples one slice; stable): view, texel, colour
+    (3, N) float64 (channel-major), weight float64."""
+    keep = np.flatnonzero(weight > 0)
+    kept = view.take(keep)
+    if len(kept) and (np.diff(kept) < 0).any():
+        keep = keep.take(np.argsort(kept, kind="stable"))
+    return (view.take(keep), texel.take(keep), np.asarray(colour.T.take(keep, 1), np.float64),
+            weight.take(keep).astype(np.float64))

@@ -85,3 +85,37 @@ def test_bad_input_is_refused_clearly():
     with pytest.raises(ValueError, match="faces"):
         mesh_edges(np.zeros((2, 2), int))
     assert mesh_edges(np.array([[0, 1, 2], [2, 1, 3]])).tolist() == [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
+
+
+def test_fast_helpers_match_their_references():
+    """mesh_edges (integer keys) is np.unique of the sorted edge rows; texel_offsets (channel by channel) is the
+    einsum of barycentrics and corner offsets, bit for bit."""
+    rng = np.random.default_rng(0)
+    faces = rng.integers(0, 30, (200, 3))
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e.sort(axis=1)
+    assert np.array_equal(mesh_edges(faces), np.unique(e[e[:, 0] != e[:, 1]], axis=0))
+    assert mesh_edges(np.zeros((0, 3), int)).shape == (0, 2)
+    offsets = rng.normal(size=(30, 3)).astype(np.float32)
+    tv, tb = rng.integers(0, 30, (500, 3)), rng.random((500, 3))
+    want = np.einsum("kc,kcj->kj", tb.astype(np.float32), offsets[tv])
+    assert np.array_equal(texel_offsets(offsets, tv, tb), want)
+
+
+def test_fit_does_not_depend_on_the_order_of_the_samples():
+    """The samples are grouped by view inside the fit: handing them over shuffled changes nothing but rounding."""
+    mesh = plane_mesh(n=6)
+    rng = np.random.default_rng(2)
+    n_tex = 300
+    face = rng.integers(0, len(mesh.faces), n_tex)
+    bary = rng.dirichlet(np.ones(3), n_tex)
+    view = np.repeat(np.arange(3), n_tex)
+    texel = np.tile(np.arange(n_tex), 3)
+    colour = rng.random((3 * n_tex, 3)) * 0.1 + np.repeat([[0.5] * 3, [0.6] * 3, [0.45] * 3], n_tex, 0)
+    weight = rng.random(3 * n_tex)
+    args = (mesh.faces[face], bary, mesh.faces, len(mesh.vertices), 3)
+    ordered = fit_seam_offsets(view, texel, colour, weight, *args)
+    p = rng.permutation(len(view))
+    shuffled = fit_seam_offsets(view[p], texel[p], colour[p], weight[p], *args)
+    assert np.abs(ordered).max() > 0.01
+    assert np.allclose(ordered, shuffled, atol=1e-6)

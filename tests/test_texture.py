@@ -15,9 +15,9 @@ from dvr.cameras import load_cameras
 from pipeline.cameras_config import TextureConfig
 from pipeline.synth import scene_from_dict, write_scene
 from pipeline.synth.render import MeshShape
-from pipeline.texture import (ViewSampler, depth_edges, depth_maps, dilate_gutter, export_textured, fill_unseen,
-                              rasterize_atlas, render_textured, robust_weights, sample_bilinear, sample_visible,
-                              sharpness_map, texel_geometry, texture_mesh)
+from pipeline.blend import ViewSampler, depth_edges, robust_weights, sample_bilinear, sample_visible, sharpness_map
+from pipeline.texture import (depth_maps, dilate_gutter, export_textured, fill_unseen, rasterize_atlas, render_textured,
+                              texel_geometry, texture_mesh)
 from tests.conftest import SHARED
 
 W = 256
@@ -371,3 +371,200 @@ def test_robust_weights_values():
     assert np.allclose(w[:2], [1.0, 0.5], atol=1e-6)
     assert 0 < w[2] < 0.05  # far, but only 2 views: down-weighted, not dropped
     assert robust_weights(col, ref, np.array([3, 3, 3]), 0.1, 3.0)[2] == 0.0
+
+
+# ---- fast paths against their simple references ----
+
+def _scene_for_depth():
+    """A sphere, a box half occluding it and a floor under both (two big triangles, behind some cameras)."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.6)
+    box = trimesh.creation.box((0.4, 0.4, 0.4))
+    box.apply_translation((0.5, -0.5, 0.3))
+    floor = trimesh.Trimesh([[-2, -2, -0.7], [2, -2, -0.7], [2, 2, -0.7], [-2, 2, -0.7]], [[0, 1, 2], [0, 2, 3]])
+    return trimesh.util.concatenate([sphere, box, floor])
+
+
+def test_zbuffer_depth_matches_ray_casting():
+    """The z-buffer depth maps (pipeline.zbuffer) are what ray casting gives at every pixel centre: silhouettes,
+    occlusion, the box's faces seen edge-on, floor triangles larger than the image. Where the floor crosses a
+    camera's plane the rasteriser declines (None) and depth_maps ray-casts that view."""
+    from dvr.cameras import Cameras
+    from pipeline.raycast import mesh_intersector
+    from pipeline.texture import ray_cast_depth
+    from pipeline.zbuffer import ray_depth_map
+
+    mesh = _scene_for_depth()
+    centers = [(2.5, 0.3, 1.2), (-1.8, 1.9, 0.4), (0.2, -2.6, 2.0), (1.0, -0.8, 2.6), (1.5, 1.5, -0.2)]
+    cams = make_cameras(centers, (0, 0, 0), 60.0, 72)
+    K = cams.K.copy()
+    K[:, 1, 1], K[:, 0, 2], K[:, 1, 2] = 55.0, 31.3, 40.7  # non-square pixels, principal point off centre
+    cams = Cameras(K, cams.R, cams.t, np.eye(4))
+    w, h = 72, 60
+    inter = mesh_intersector(mesh)
+    maps = depth_maps(mesh, cams, [(w, h)] * len(cams))
+    declined = 0
+    for i in range(len(cams)):
+        want = ray_cast_depth(inter, cams.K[i], cams.R[i], cams.centers[i], w, h)
+        raster = ray_depth_map(mesh.vertices, mesh.faces, cams.K[i], cams.R[i], cams.centers[i], w, h)
+        declined += raster is None
+        got = maps[i]
+        if raster is not None:
+            assert np.array_equal(raster, got)
+        both = np.isfinite(want) & np.isfinite(got)
+        assert (np.isfinite(want) != np.isfinite(got)).sum() <= 2, i  # at most a grazing ray or two
+        assert both.sum() > 1000
+        close = np.abs(want[both] - got[both]) < 1e-6 * want[both]
+        assert close.mean() > 0.998, (i, close.mean())
+    assert 1 <= declined <= 2
+
+
+def test_depth_maps_without_triangles_in_view():
+    from pipeline.zbuffer import ray_depth_map
+
+    cams = make_cameras([(0, 0, 3.0)], (0, 0, 0), 50.0, 16, down=(0.0, -1.0, 0.0))
+    far = trimesh.creation.box((0.1, 0.1, 0.1))
+    far.apply_translation((40.0, 0.0, 0.0))  # outside the image
+    d = ray_depth_map(far.vertices, far.faces, cams.K[0], cams.R[0], cams.centers[0], 16, 16)
+    assert d.shape == (16, 16) and np.isinf(d).all()
+    behind = trimesh.creation.box((0.1, 0.1, 0.1))
+    behind.apply_translation((0.0, 0.0, 5.0))  # wholly behind the camera: skipped, not a fallback
+    d = ray_depth_map(behind.vertices, behind.faces, cams.K[0], cams.R[0], cams.centers[0], 16, 16)
+    assert d is not None and np.isinf(d).all()
+
+
+def _reference_accumulate(n, views, extremes):
+    """The blend sums one view at a time, as the bake first computed them."""
+    acc, weight = np.zeros((3, n, 3)), np.zeros((3, n))
+    count = np.zeros(n, np.int32)
+    hi, lo = np.full((n, 3), -np.inf, np.float32), np.full((n, 3), np.inf, np.float32)
+    hi_w, lo_w = np.zeros((n, 3), np.float32), np.zeros((n, 3), np.float32)
+    for idx, col, w, tier in views:
+        for k in range(3):
+            s = tier == k
+            acc[k][idx[s]] += w[s, None] * col[s]
+            weight[k][idx[s]] += w[s]
+        count[idx] += 1
+        if extremes:
+            wt = np.broadcast_to(w[:, None], col.shape)
+            for val, vw, better in ((hi, hi_w, np.greater), (lo, lo_w, np.less)):
+                cur = val[idx]
+                up = better(col, cur)
+                val[idx] = np.where(up, col, cur)
+                vw[idx] = np.where(up, wt, vw[idx])
+    return acc, weight, count, hi, lo, hi_w, lo_w
+
+
+def test_blend_accumulator_all_views_at_once_equals_view_by_view():
+    """One add() of all views' samples (bincount sums, extremes by ufunc.at) gives bit for bit the sums, counts and
+    extremes of adding the views one by one — ties (equal colours in two views) included: the first view wins."""
+    from pipeline.blend import BlendAccumulator
+
+    rng = np.random.default_rng(3)
+    n, views = 40, []
+    for _ in range(6):
+        idx = np.sort(rng.choice(n, 25, replace=False))
+        col = (rng.integers(0, 5, (25, 3)) / 4).astype(np.float32)  # few levels: many ties
+        views.append((idx, col, rng.random(25).astype(np.float32), rng.choice([0, 0, 0, 1, 2], 25).astype(np.int8)))
+    acc, weight, count, hi, lo, hi_w, lo_w = _reference_accumulate(n, views, True)
+    out = BlendAccumulator(n, extremes=True)
+    out.add(*(np.concatenate(a) for a in zip(*views)))
+    assert np.array_equal(out.count, count)
+    for k in range(3):
+        assert np.array_equal(out.acc[k], acc[k]) and np.array_equal(out.weight[k], weight[k])
+    for got, want in ((out.hi, hi), (out.lo, lo), (out.hi_w, hi_w), (out.lo_w, lo_w)):
+        assert np.array_equal(got, want)
+    one_by_one = BlendAccumulator(n, extremes=True)
+    for v in views:
+        one_by_one.add(*v)
+    for mode in (True, False):
+        assert np.array_equal(out.reference(mode), one_by_one.reference(mode))
+        assert np.array_equal(out.blend(mode)[0], one_by_one.blend(mode)[0])
+
+
+def test_sharpness_map_matches_kornia():
+    """The OpenCV sharpness map is kornia's Sobel magnitude and Gaussian blur, to float rounding."""
+    import kornia
+    import torch
+
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.random((40, 52, 3)).astype(np.float32), (0, 0), 1.0)
+    exclude = rng.random((40, 52)) < 0.1
+    grey = torch.from_numpy(img.mean(2))[None, None]
+    grad = kornia.filters.sobel(grey, eps=0.0) * torch.from_numpy(~exclude)[None, None].float()
+    want = kornia.filters.gaussian_blur2d(grad, (11, 11), (2.0, 2.0))[0, 0].numpy()
+    got = sharpness_map(img, exclude)
+    assert got.dtype == np.float32 and np.allclose(got, want, rtol=1e-5, atol=1e-7)
+
+
+def test_texel_geometry_matches_row_formula():
+    """Coordinate by coordinate, the texel points, normals and barycentrics are those of the (M, 3) row formula."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    from pipeline.texture import make_atlas
+
+    vmap, nf, uvs = make_atlas(mesh.vertices, mesh.faces, 128, 2)
+    nv, normals = mesh.vertices[vmap], mesh.vertex_normals[vmap]
+    fid = rasterize_atlas(uvs, nf, 128)
+    r, c, pts, nrm, f, bary = texel_geometry(fid, uvs, nf, nv, normals, with_bary=True)
+    rr, cc = np.nonzero(fid >= 0)
+    p = np.stack([(cc + 0.5) / 128, 1.0 - (rr + 0.5) / 128], 1)
+    a, b, d = uvs[nf[f, 0]], uvs[nf[f, 1]], uvs[nf[f, 2]]
+    v0, v1, v2 = b - a, d - a, p - a
+    den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
+    w1 = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
+    w2 = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
+    want = np.clip(np.stack([1 - w1 - w2, w1, w2], 1), 0, 1)
+    want /= want.sum(1, keepdims=True)
+    want_n = (normals[nf[f]] * want[:, :, None]).sum(1)
+    assert np.array_equal(r, rr) and np.array_equal(c, cc) and np.array_equal(bary, want)
+    assert np.array_equal(pts, (nv[nf[f]] * want[:, :, None]).sum(1))
+    assert np.array_equal(nrm, want_n / np.linalg.norm(want_n, axis=1, keepdims=True))
+
+
+def test_dilate_gutter_matches_filter_reference():
+    """The ring-by-ring gutter is the full-image 3×3 mean filter of valid neighbours, step by step; texels it never
+    reaches keep their values."""
+    rng = np.random.default_rng(1)
+    valid = cv2.dilate((rng.random((60, 70)) < 0.01).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    tex = rng.random((60, 70, 3)).astype(np.float32)
+    want_tex, want_valid = tex.copy(), valid.copy()
+    k = np.ones((3, 3), np.float32)
+    for _ in range(3):
+        m = want_valid.astype(np.float32)
+        s = cv2.filter2D(want_tex * m[..., None], -1, k, borderType=cv2.BORDER_CONSTANT)
+        cnt = cv2.filter2D(m, -1, k, borderType=cv2.BORDER_CONSTANT)
+        grow = ~want_valid & (cnt > 0)
+        want_tex[grow] = s[grow] / cnt[grow, None]
+        want_valid |= grow
+    got_tex, got_valid = dilate_gutter(tex, valid, 3)
+    assert np.array_equal(got_valid, want_valid)
+    assert np.allclose(got_tex, want_tex, rtol=1e-6, atol=1e-7)
+    assert np.array_equal(got_tex[~want_valid], tex[~want_valid])
+
+
+def test_bake_chunks_and_threads_do_not_change_the_texture(plane_views, monkeypatch):
+    """Texels are baked in chunks, in threads: tiny chunks over several threads give the same texture, bit for bit."""
+    from pipeline import blend
+
+    mesh, cams, imgs, _ = plane_views
+    cfg = TextureConfig(**SYNTH)
+    ref = texture_mesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), imgs, cams, cfg, None)[3]
+    monkeypatch.setattr(blend, "BAKE_CHUNK", 997)
+    monkeypatch.setattr(blend, "BAKE_THREADS", 3)
+    tiny = texture_mesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), imgs, cams, cfg, None)[3]
+    assert np.array_equal(ref, tiny)
+
+
+def test_a_head_on_texel_whose_cosine_rounds_above_one_is_sampled():
+    """A texel seen head-on whose normal rounds a hair above unit length (as float32 normalising gives): cos θ =
+    1 + 2e-7, and sqrt(1 − cos²) was NaN, the depth tolerance NaN and the sample silently dropped."""
+    import warnings
+
+    cams = make_cameras([(0.0, 0.0, 2.0)], (0.0, 0.0, 0.0), 50.0, 64, down=(0.0, -1.0, 0.0))
+    pts, nrm = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0000002]])
+    depth = np.full((64, 64), 2.0)
+    sampler = ViewSampler(pts, nrm, [np.full((64, 64, 3), 0.5, np.float32)], cams, [depth], TextureConfig(**SYNTH))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        idx, col, weight, _ = sampler.samples(0)
+    assert list(idx) == [0] and np.isfinite(weight).all() and weight[0] > 0
+    assert np.allclose(col, 0.5)

@@ -1,0 +1,436 @@
+"""Blending the photos into texels (stage ``texture``, :mod:`pipeline.texture`): per view, the visible texels'
+bilinear samples (depth-map visibility, edge pixels only as a fallback), weighted by the viewing angle, distance,
+the image border and the photo's local sharpness; a robust second pass (Cauchy weights on the distance to a
+trimmed mean) that keeps highlights, shadows and occluders one view alone sees out of the texture; and the
+per-view seam-levelling offsets (:mod:`pipeline.seams`) added before blending. Texels are baked in chunks, each
+sampling every view once, on a few threads (numpy releases the GIL)."""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from .cameras_config import TextureConfig
+from .seams import fit_seam_offsets, texel_offsets_planar
+
+
+def depth_edges(depth: np.ndarray, tol: float, px: int) -> np.ndarray:
+    """Pixels within ``px`` of a depth discontinuity (> 10 × tol) or of the silhouette."""
+    d = np.where(np.isfinite(depth), depth, 1e6).astype(np.float32)
+    k = np.ones((3, 3), np.uint8)
+    jump = (cv2.dilate(d, k) - cv2.erode(d, k)) > 10 * tol
+    if px > 0:
+        jump = cv2.dilate(jump.astype(np.uint8), np.ones((2 * px + 1,) * 2, np.uint8)) > 0
+    return jump
+
+
+def sample_bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear lookup at continuous (x, y) where integer coordinates are pixel centres (edges clamped)."""
+    h, w = img.shape[:2]
+    x = x.clip(0, w - 1)
+    y = y.clip(0, h - 1)
+    x0, y0 = np.floor(x).astype(int).clip(0, w - 2), np.floor(y).astype(int).clip(0, h - 2)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    return ((img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx) * (1 - fy)
+            + (img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
+
+
+def sample_visible(img: np.ndarray, depth: np.ndarray, edges: np.ndarray, x: np.ndarray, y: np.ndarray,
+                   dist: np.ndarray, tol: np.ndarray):
+    """Depth-aware bilinear lookup at continuous (x, y) (integer = pixel centre).
+
+    Of the four pixels around (x, y), only those whose rendered depth agrees with the texel's depth ``dist``
+    (within ``tol``) contribute: a pixel of an occluder, or of the background beside a silhouette, never
+    mixes in. Returns colours (M, C), the support (sum of the bilinear weights used; 0 = not visible) and
+    whether an edge pixel was used.
+    """
+    col, sup, edge = _sample_planes(_planes(img), depth, edges, x, y, dist, tol)
+    return col.T, sup, edge
+
+
+def _planes(img: np.ndarray) -> np.ndarray:
+    """An (h, w, C) image as C contiguous planes (C, h·w)."""
+    return np.ascontiguousarray(np.moveaxis(img.reshape(img.shape[0] * img.shape[1], -1), -1, 0))
+
+
+def _sample_planes(planes: np.ndarray, depth: np.ndarray, edges: np.ndarray, x: np.ndarray, y: np.ndarray,
+                   dist: np.ndarray, tol: np.ndarray):
+    """:func:`sample_visible` of an image given as planes (C, h·w) (:func:`_planes`): colours (C, M), support (M,),
+    edge (M,). Channel by channel, every step is a contiguous 1-D array operation."""
+    h, w = depth.shape
+    x0 = np.floor(x).astype(np.intp).clip(0, w - 2)
+    y0 = np.floor(y).astype(np.intp).clip(0, h - 2)
+    fx, fy = (x - x0).clip(0, 1), (y - y0).clip(0, 1)
+    base = y0 * w + x0
+    flat_depth, flat_edges = depth.ravel(), edges.ravel()
+    col = np.zeros((len(planes), len(x)), np.result_type(planes.dtype, np.float32))
+    sup = np.zeros(len(x), col.dtype)
+    edge = np.zeros(len(x), bool)
+    for step, wt in ((0, (1 - fx) * (1 - fy)), (1, fx * (1 - fy)), (w, (1 - fx) * fy), (w + 1, fx * fy)):
+        k = base + step
+        ok = np.abs(flat_depth.take(k) - dist) < tol  # inf (no surface there) never agrees
+        wk = np.where(ok, wt, 0.0).astype(col.dtype)
+        for c, plane in zip(col, planes):
+            c += wk * plane.take(k)
+        sup += wk
+        edge |= ok & (wt > 0) & flat_edges.take(k)
+    col /= np.maximum(sup, 1e-12)
+    return col, sup, edge
+
+
+def without_silhouette(depth: np.ndarray, px: int) -> np.ndarray:
+    """The depth map with the object pixels within ``px`` of the background (no surface: inf) set to inf, so that
+    the depth test never samples them: where the mesh is a little larger than the object, they show background."""
+    if depth.ndim != 2:
+        raise ValueError(f"without_silhouette: depth must have shape (h, w), got {depth.shape}")
+    if px <= 0:
+        return depth
+    background = (~np.isfinite(depth)).astype(np.uint8)
+    near = cv2.dilate(background, np.ones((2 * px + 1, 2 * px + 1), np.uint8)) > 0
+    return np.where(near, np.inf, depth)
+
+
+def sharpness_map(img: np.ndarray, exclude: np.ndarray | None = None, sigma_px: float = 2.0) -> np.ndarray:
+    """Local sharpness (h, w) float32 of a photo (h, w, C): the Sobel gradient magnitude of its grey image per
+    pixel (kernel normalised to 1/8, edges replicated), 0 at ``exclude`` (silhouettes and depth edges, whose contrast
+    is not the surface's), then Gaussian-blurred over ``sigma_px`` (edges reflected). OpenCV; what kornia's ``sobel``
+    and ``gaussian_blur2d`` give to float rounding, without torch's thread start-up on small images."""
+    if img.ndim != 3 or img.shape[0] < 3 or img.shape[1] < 3:
+        raise ValueError(f"sharpness_map: img must have shape (h, w, C) with h, w >= 3, got {img.shape}")
+    if exclude is not None and exclude.shape != img.shape[:2]:
+        raise ValueError(f"sharpness_map: exclude must have shape {img.shape[:2]}, got {exclude.shape}")
+    grey = np.ascontiguousarray(img, np.float32).mean(2)
+    gx, gy = (cv2.Sobel(grey, cv2.CV_32F, dx, 1 - dx, ksize=3, scale=0.125, borderType=cv2.BORDER_REPLICATE)
+              for dx in (1, 0))
+    grad = cv2.magnitude(gx, gy)
+    if exclude is not None:
+        grad[exclude] = 0.0
+    k = 2 * int(np.ceil(2.5 * sigma_px)) + 1
+    return cv2.GaussianBlur(grad, (k, k), sigma_px, sigmaY=sigma_px, borderType=cv2.BORDER_REFLECT_101)
+
+
+def _affine(p: np.ndarray, M: np.ndarray, t) -> list[np.ndarray]:
+    """The rows of ``M @ p + t`` for channel-major points ``p`` (3, N) and a small (k, 3) ``M``: k arrays (N,), row by
+    row (BLAS on N × 3 is slow when other threads, torch's, compete for the cores)."""
+    t = np.broadcast_to(np.asarray(t, p.dtype), (len(M),))
+    return [p[0] * M[j, 0] + p[1] * M[j, 1] + p[2] * M[j, 2] + t[j] for j in range(len(M))]
+
+
+def channel_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Rows ``idx`` of an (N, C) array whose channels are contiguous (the transpose of a (C, N) array, as the
+    sampler's colours are), laid out the same way."""
+    return a.T.take(idx, 1).T
+
+
+class ViewSampler:
+    """The photos' samples of a set of texel points, one view at a time (nothing texels × views is held).
+
+    :meth:`samples` of view ``i`` gives the texels it sees (in front, inside the image, facing it with cos >
+    ``min_cos``, depth test of :func:`sample_visible`) with their colours, blending weights (cos^p / distance² ×
+    a feather towards the image border × the support × the sharpness factor) and tiers: 0 clean, 1 touches a depth
+    edge, 2 seen only through the silhouette band (:func:`without_silhouette`). Points, normals and colours are held
+    channel by channel (``pts`` is the transpose of a (3, M) array).
+    """
+
+    def __init__(self, pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams, depths: list[np.ndarray],
+                 cfg: TextureConfig, maps: tuple | None = None):
+        if pts.ndim != 2 or pts.shape[1] != 3 or nrm.shape != pts.shape:
+            raise ValueError(f"ViewSampler: pts {pts.shape} and nrm {nrm.shape} must both have shape (M, 3)")
+        if not (len(images) == len(depths) == len(cams)):
+            raise ValueError(f"ViewSampler: {len(images)} images, {len(depths)} depth maps, {len(cams)} cameras")
+        self.p3, self.n3 = np.array(pts.T, np.float32, order="C"), np.array(nrm.T, np.float32, order="C")
+        self.pts = self.p3.T
+        self.facing = self.n3[0] * self.p3[0] + self.n3[1] * self.p3[1] + self.n3[2] * self.p3[2]  # n·p per texel
+        self.images, self.cfg, self.full_depths = images, cfg, depths
+        self.planes = [_planes(im) for im in images]
+        self.depths = [without_silhouette(d, cfg.silhouette_px) for d in depths]
+        self.band = [(cv2.dilate((np.isfinite(f) & ~np.isfinite(d)).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+                     .ravel() for f, d in zip(depths, self.depths)]  # silhouette band, grown by a pixel
+        self.K, self.R = cams.K.astype(np.float32), cams.R.astype(np.float32)
+        self.t, self.centers = cams.t.astype(np.float32), cams.centers.astype(np.float32)
+        self.edges, self.sharp = maps if maps is not None else self._maps()
+
+    def _maps(self):
+        cfg = self.cfg
+        edges = [depth_edges(d, cfg.depth_tolerance, cfg.edge_px) for d in self.depths]
+        if cfg.sharpness_power <= 0:
+            return edges, None
+        grow = np.ones((3, 3), np.uint8)  # the edges one pixel wider: depth_edges(…, edge_px + 1)
+        sharp = [sharpness_map(im, cv2.dilate(e.astype(np.uint8), grow) > 0) for im, e in zip(self.images, edges)]
+        return edges, sharp
+
+    def subset(self, sel) -> "ViewSampler":
+        """The same views sampling only the texels ``sel`` (indices or a slice into this sampler's points)."""
+        out = object.__new__(ViewSampler)
+        out.__dict__.update(self.__dict__)
+        out.p3, out.n3, out.facing = self.p3[:, sel], self.n3[:, sel], self.facing[sel]
+        out.pts = out.p3.T
+        return out
+
+    def samples(self, i: int):
+        """View ``i``'s samples: texel indices (k,), colours (k, 3) (channels contiguous: the transpose of a (3, k)
+        array), weights (k,), tiers (k,) int8."""
+        cfg = self.cfg
+        h, w = self.images[i].shape[:2]
+        facing = _affine(self.n3, self.centers[i][None], 0.0)[0] - self.facing
+        idx = np.flatnonzero(facing > 0)
+        p = self.p3.take(idx, 1)
+        view = self.centers[i][:, None] - p
+        dist = np.sqrt(view[0] * view[0] + view[1] * view[1] + view[2] * view[2]).clip(1e-9)
+        cos = facing.take(idx) / dist
+        pix = _affine(p, self.K[i] @ self.R[i], self.K[i] @ self.t[i])
+        z = np.where(pix[2] > 1e-9, pix[2], 1.0)
+        u, v = pix[0] / z, pix[1] / z
+        ok = (cos > cfg.min_cos) & (pix[2] > 1e-9) & (u >= 0.5) & (u <= w - 0.5) & (v >= 0.5) & (v <= h - 0.5)
+        idx, dist, cos, u, v = idx[ok], dist[ok], cos[ok], u[ok], v[ok]
+        f = float(self.K[i][0, 0])
+        # depth change across one pixel on a surface tilted by θ: (dist / f) · tan θ
+        tol = cfg.depth_tolerance + 1.5 * dist / f * np.sqrt(np.maximum(1 - cos * cos, 0.0)) / np.maximum(cos, 1e-6)
+        col, sup, edge = _sample_planes(self.planes[i], self.depths[i], self.edges[i], u - 0.5, v - 0.5, dist, tol)
+        tier = edge.astype(np.int8)
+        pixel = v.astype(np.int64).clip(0, h - 1) * w + u.astype(np.int64).clip(0, w - 1)
+        retry = np.flatnonzero((sup <= 0.05) & self.band[i].take(pixel))
+        if len(retry):  # the silhouette band: a last resort
+            col[:, retry], sup[retry], _ = _sample_planes(self.planes[i], self.full_depths[i], self.edges[i],
+                                                          u[retry] - 0.5, v[retry] - 0.5, dist[retry], tol[retry])
+            tier[retry] = 2
+        keep = np.flatnonzero(sup > 0.05)
+        idx, sup, tier, dist, cos, u, v = (a.take(keep) for a in (idx, sup, tier, dist, cos, u, v))
+        col = col.take(keep, 1)
+        border = np.minimum(np.minimum(u, w - u), np.minimum(v, h - v))
+        feather = np.clip(border / (0.05 * max(w, h)), 0.05, 1.0)
+        weight = cos ** cfg.angle_power / dist ** 2 * feather * sup
+        if self.sharp is not None:  # image contrast per unit length on the surface: lower in a blurred view
+            px = np.minimum(v.astype(np.int64), h - 1) * w + np.minimum(u.astype(np.int64), w - 1)
+            contrast = self.sharp[i].ravel().take(px) * f / dist
+            weight = weight * (1.0 + contrast / max(cfg.sharpness_floor, 1e-6)) ** cfg.sharpness_power
+        return idx, col.T, weight.astype(np.float32), tier
+
+
+def robust_weights(col: np.ndarray, reference: np.ndarray, count: np.ndarray, threshold: float, reject: float,
+                   min_views: int = 3) -> np.ndarray:
+    """Photo-consistency factor (k,) of samples ``col`` (k, 3) against the texels' robust colour ``reference``
+    (k, 3): Cauchy ``1 / (1 + (d / threshold)²)`` of the RMS colour distance d, and 0 beyond ``reject`` ×
+    ``threshold`` where ``count`` (k,) ≥ ``min_views`` views see the texel (with fewer, who is wrong is unknown)."""
+    if col.ndim != 2 or col.shape[1] != 3 or reference.shape != col.shape or count.shape != col.shape[:1]:
+        raise ValueError(f"robust_weights: col {col.shape} and reference {reference.shape} must be (k, 3), "
+                         f"count {count.shape} (k,)")
+    if not threshold > 0:
+        raise ValueError(f"robust_weights: threshold must be positive, got {threshold}")
+    d = np.sqrt(((col - reference) ** 2).mean(1))
+    out = 1.0 / (1.0 + (d / threshold) ** 2)
+    return np.where((count >= min_views) & (d > reject * threshold), 0.0, out).astype(np.float32)
+
+
+class BlendAccumulator:
+    """Running sums of a weighted blend of N texels, per sample tier (0 clean, 1 edge, 2 silhouette band) apart;
+    with ``extremes``, per texel and channel the largest and smallest sample and their weights (a trimmed mean)."""
+
+    TIERS = (0, 1, 2)
+
+    def __init__(self, n: int, extremes: bool = False):
+        self.sums = np.zeros((4, len(self.TIERS), n))  # (R, G, B, weight) × tier × texel
+        self.acc = {k: self.sums[:3, k].T for k in self.TIERS}  # (n, 3) views
+        self.weight = {k: self.sums[3, k] for k in self.TIERS}
+        self.count = np.zeros(n, np.int32)
+        self.extremes = extremes
+        if extremes:
+            # (n, 3) with contiguous channels, as the samples' colours
+            self.hi, self.lo = np.full((3, n), -np.inf, np.float32).T, np.full((3, n), np.inf, np.float32).T
+            self.hi_w, self.lo_w = np.zeros((3, n), np.float32).T, np.zeros((3, n), np.float32).T
+
+    def add(self, idx: np.ndarray, col: np.ndarray, weight: np.ndarray, tier: np.ndarray) -> None:
+        """Samples of one or more views (texel ``idx`` unique within each view), in view order: texel indices (k,),
+        colours (k, 3), weights (k,), tiers (k,). All views in one call sum exactly as one call per view would."""
+        n = len(self.count)
+        key = idx + n * tier.astype(np.intp) if tier.any() else idx
+        wcol = weight[:, None] * col
+        for j in range(4):
+            self.sums[j] += np.bincount(key, wcol[:, j] if j < 3 else weight, len(self.TIERS) * n).reshape(-1, n)
+        self.count += np.bincount(idx, minlength=n).astype(np.int32)
+        if self.extremes:
+            for j in range(3):
+                self._extreme(idx, col[:, j], weight, self.hi[:, j], self.hi_w[:, j], np.fmax, np.greater)
+                self._extreme(idx, col[:, j], weight, self.lo[:, j], self.lo_w[:, j], np.fmin, np.less)
+
+    @staticmethod
+    def _extreme(idx, value, weight, best, best_w, pick, better) -> None:
+        """Per texel the extreme ``value`` (``pick``: np.fmax or np.fmin) into ``best`` and the weight of the first
+        sample that has it into ``best_w``, where it is ``better`` than the one already there."""
+        new = np.full(len(best), np.nan, best.dtype)  # nan: no sample
+        pick.at(new, idx, value)
+        at = np.flatnonzero(value == new.take(idx))
+        first = np.full(len(best), len(idx))
+        np.minimum.at(first, idx.take(at), at)
+        up = np.flatnonzero(better(new, best))  # nan (no sample) never is
+        best[up] = new.take(up)
+        best_w[up] = weight.take(first.take(up))
+
+    def tier(self, edge_fallback_only: bool) -> np.ndarray:
+        """Per texel the tier :meth:`blend` takes: the first with any weight (with ``edge_fallback_only`` clean before
+        edge, else the two together as 0), the silhouette band last; −1 where nothing sees the texel."""
+        out = np.full(len(self.count), -1, np.int8)
+        order = (2, 1, 0) if edge_fallback_only else (2, 0)
+        for k in order:
+            w = self.weight[k] + (self.weight[1] if (k == 0 and not edge_fallback_only) else 0.0)
+            out[w > 0] = k
+        return out
+
+    def blend(self, edge_fallback_only: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Colours (N, 3) and weights (N,) of the samples of each texel's :meth:`tier`."""
+        tier = self.tier(edge_fallback_only)
+        acc, wsum = np.zeros_like(self.acc[0]), np.zeros_like(self.weight[0])
+        for k in self.TIERS:
+            s = tier == k if (edge_fallback_only or k != 1) else tier == 0
+            acc[s] += self.acc[k][s]
+            wsum[s] += self.weight[k][s]
+        return acc / np.maximum(wsum, 1e-300)[:, None], wsum
+
+    def reference(self, edge_fallback_only: bool, min_views: int = 3) -> np.ndarray:
+        """Robust colour (N, 3): per channel, the weighted mean without the largest and the smallest sample where
+        ``min_views`` or more views see the texel (their median for three), else :meth:`blend`."""
+        out, _ = self.blend(edge_fallback_only)
+        if not self.extremes:
+            return out
+        acc, wsum = sum(self.acc.values()), sum(self.weight.values())[:, None]
+        rest = wsum - self.hi_w - self.lo_w
+        ok = (self.count[:, None] >= min_views) & (rest > 1e-6 * wsum)
+        hi, lo = np.where(ok, self.hi, 0.0), np.where(ok, self.lo, 0.0)
+        trimmed = (acc - self.hi_w * hi - self.lo_w * lo) / np.where(ok, rest, 1.0)
+        return np.where(ok, trimmed, out)
+
+
+class TexelSurface(NamedTuple):
+    """Where the texels lie on the mesh, for the seam levelling: the mesh vertex ids (M, 3) of each texel's face
+    and its barycentrics (M, 3); the mesh's faces (F, 3) over ``n_verts`` vertices (UV-seam copies merged)."""
+
+    texel_vertices: np.ndarray
+    texel_bary: np.ndarray
+    faces: np.ndarray
+    n_verts: int
+
+
+BAKE_CHUNK = 1 << 16
+"""Texels baked together by :func:`bake`: their samples in all views are held at once (~25 bytes per sample, about a
+dozen samples per texel) and reused by the robust pass."""
+BAKE_THREADS = min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+"""Threads of the bake: chunks of texels (and the views of the seam-levelling fit) at once."""
+
+
+def view_samples(sampler: ViewSampler, cfg: TextureConfig, offsets: np.ndarray | None = None,
+                 surface: TexelSurface | None = None) -> tuple[np.ndarray, ...]:
+    """All views' samples (:meth:`ViewSampler.samples`), view after view: texel indices (k,), colours (k, 3) with each
+    view's seam offsets added (``offsets`` (V, n_verts, 3) on ``surface``, whose texels are the sampler's), weights
+    (k,) × ``edge_weight`` on edge samples, tiers (k,)."""
+    out = []
+    if offsets is not None:  # channel-major: (V, 3, n_verts) offsets, (3, M) texel corners and barycentrics
+        planes = offsets.transpose(0, 2, 1).copy()
+        corners, bary = surface.texel_vertices.T.copy(), np.array(surface.texel_bary.T, np.float32, order="C")
+    for i in range(len(sampler.images)):
+        idx, col, weight, tier = sampler.samples(i)
+        col = col.T  # (3, k)
+        if offsets is not None:
+            col = col + texel_offsets_planar(planes[i], corners.take(idx, 1), bary.take(idx, 1))
+        weight = weight * np.where(tier > 0, np.float32(cfg.edge_weight), np.float32(1.0))
+        out.append((idx, col, weight, tier))
+    if not out:
+        return np.zeros(0, np.intp), np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int8)
+    idx, col, weight, tier = zip(*out)
+    return np.concatenate(idx), np.concatenate(col, 1).T, np.concatenate(weight), np.concatenate(tier)
+
+
+def blend_views(samples: tuple[np.ndarray, ...], n: int, cfg: TextureConfig, reference: np.ndarray | None = None,
+                count: np.ndarray | None = None, extremes: bool = False) -> BlendAccumulator:
+    """The views' ``samples`` (:func:`view_samples`) of ``n`` texels summed into a :class:`BlendAccumulator`; with a
+    ``reference`` (n, 3) and view ``count`` (n,), each weight × :func:`robust_weights`."""
+    idx, col, weight, tier = samples
+    if reference is not None and len(idx):
+        weight = weight * robust_weights(col, channel_rows(reference, idx), count.take(idx), cfg.outlier_threshold,
+                                         cfg.outlier_reject)
+    out = BlendAccumulator(n, extremes)
+    out.add(idx, col, weight, tier)
+    return out
+
+
+def fit_view_offsets(sampler: ViewSampler, surface: TexelSurface, cfg: TextureConfig) -> np.ndarray:
+    """Seam-levelling offsets (V, n_verts, 3) (:func:`pipeline.seams.fit_seam_offsets`) fitted on at most
+    ``seam_fit_texels`` texels drawn with a fixed seed; edge samples left out, outliers down-weighted against the
+    texels' trimmed-mean colour."""
+    n = len(sampler.pts)
+    if len(surface.texel_vertices) != n or len(surface.texel_bary) != n:
+        raise ValueError(f"fit_view_offsets: surface describes {len(surface.texel_vertices)} texels, sampler {n}")
+    sel = np.arange(n)
+    if n > cfg.seam_fit_texels:
+        sel = np.sort(np.random.default_rng(0).choice(n, cfg.seam_fit_texels, replace=False))
+    sub = sampler.subset(sel)
+    stats = BlendAccumulator(len(sel), extremes=cfg.outlier_threshold > 0)
+    views, texels, cols, weights = [], [], [], []
+    with ThreadPoolExecutor(BAKE_THREADS) as pool:
+        per_view = list(pool.map(sub.samples, range(len(sampler.images))))
+    for i, (idx, col, weight, tier) in enumerate(per_view):
+        clean = np.flatnonzero(tier == 0)
+        views.append(np.full(len(clean), i, np.int32)), texels.append(idx.take(clean))
+        cols.append(col.T.take(clean, 1)), weights.append(weight.take(clean))
+    texel, col, weight = np.concatenate(texels), np.concatenate(cols, 1).T, np.concatenate(weights)
+    stats.add(texel, col, weight, np.zeros(len(texel), np.int8))
+    weight = weight.astype(np.float64)
+    if cfg.outlier_threshold > 0 and len(texel):
+        ref = stats.reference(True)
+        weight = weight * robust_weights(col, channel_rows(ref, texel), stats.count.take(texel),
+                                         cfg.outlier_threshold, cfg.outlier_reject)
+    return fit_seam_offsets(np.concatenate(views), texel, col, weight, surface.texel_vertices[sel],
+                            surface.texel_bary[sel], surface.faces, surface.n_verts, len(sampler.images),
+                            cfg.seam_smoothness, cfg.seam_zero_pull)
+
+
+def _bake_texels(sampler: ViewSampler, cfg: TextureConfig, offsets: np.ndarray | None,
+                 surface: TexelSurface | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`bake` of the sampler's texels, their views' samples drawn once for both passes."""
+    samples = view_samples(sampler, cfg, offsets, surface)
+    n, robust = len(sampler.pts), cfg.outlier_threshold > 0
+    first = blend_views(samples, n, cfg, extremes=robust)
+    col, wsum = first.blend(cfg.edge_fallback_only)
+    tier = first.tier(cfg.edge_fallback_only)
+    if robust:
+        reference, count = first.reference(cfg.edge_fallback_only), first.count
+        del first
+        second = blend_views(samples, n, cfg, reference=reference, count=count)
+        robust_col, robust_wsum = second.blend(cfg.edge_fallback_only)
+        ok = (second.tier(cfg.edge_fallback_only) == tier) & (robust_wsum > 1e-6 * wsum)  # else keep the first pass
+        col[ok] = robust_col[ok]
+    return np.clip(col, 0.0, 1.0), wsum, tier == 2
+
+
+def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams, depths: list[np.ndarray],
+         cfg: TextureConfig, surface: TexelSurface | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Colours (M, 3) in [0, 1], total weights (M,) of texel points seen by the photos, and which texels only the
+    silhouette band sees (M,) bool (their colour may be background: the caller gives them the fallback colour).
+
+    Samples and weights per view: :class:`ViewSampler` (depth test, cos^p / distance², border feather, sharpness).
+    Samples touching a depth discontinuity or silhouette (where real photos blend foreground and background) are
+    down-weighted by ``edge_weight`` and, with ``edge_fallback_only``, count only where no clean sample sees the
+    texel; pixels in the silhouette band (``silhouette_px``) count only where nothing else does. With
+    ``seam_levelling`` and a ``surface``, each view's samples get its fitted colour offsets
+    (:func:`fit_view_offsets`) first. With ``outlier_threshold`` > 0 a second pass re-weights every sample by its
+    photo-consistency (:func:`robust_weights`) against the first pass's per-channel trimmed mean, so a highlight,
+    shadow or occluder that one view alone sees does not reach the texture. Texels are baked :data:`BAKE_CHUNK` at a
+    time, :data:`BAKE_THREADS` chunks at once (every texel's result depends on its own samples only).
+    """
+    sampler = ViewSampler(pts, nrm, images, cams, depths, cfg)
+    offsets = fit_view_offsets(sampler, surface, cfg) if cfg.seam_levelling and surface is not None else None
+    n = len(sampler.pts)
+    col, wsum, band = np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool)
+
+    def bake_chunk(start: int) -> None:
+        s = slice(start, start + BAKE_CHUNK)
+        part = None if surface is None else surface._replace(texel_vertices=surface.texel_vertices[s],
+                                                             texel_bary=surface.texel_bary[s])
+        col[s], wsum[s], band[s] = _bake_texels(sampler.subset(s), cfg, offsets, part)
+
+    with ThreadPoolExecutor(BAKE_THREADS) as pool:  # numpy releases the GIL in the chunks' array operations
+        list(pool.map(bake_chunk, range(0, n, BAKE_CHUNK)))
+    return col, wsum, band
