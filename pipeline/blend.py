@@ -28,17 +28,6 @@ def depth_edges(depth: np.ndarray, tol: float, px: int) -> np.ndarray:
     return jump
 
 
-def sample_bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear lookup at continuous (x, y) where integer coordinates are pixel centres (edges clamped)."""
-    h, w = img.shape[:2]
-    x = x.clip(0, w - 1)
-    y = y.clip(0, h - 1)
-    x0, y0 = np.floor(x).astype(int).clip(0, w - 2), np.floor(y).astype(int).clip(0, h - 2)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return ((img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx) * (1 - fy)
-            + (img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
-
-
 def sample_visible(img: np.ndarray, depth: np.ndarray, edges: np.ndarray, x: np.ndarray, y: np.ndarray,
                    dist: np.ndarray, tol: np.ndarray):
     """Depth-aware bilinear lookup at continuous (x, y) (integer = pixel centre).

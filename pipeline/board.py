@@ -23,7 +23,7 @@ import numpy as np
 
 from dvr.metrics import umeyama
 
-from .support import SupportPlane
+from .support import SupportPlane, object_height, object_points
 from .workspace import StageError
 
 A4_MM = (210.0, 297.0)
@@ -49,6 +49,11 @@ class BoardSpec:
     def describe(self) -> str:
         return (f"{self.squares[0]}×{self.squares[1]} ChArUco, {1000 * self.square_m:g} mm squares, "
                 f"{1000 * self.marker_m:g} mm markers, {self.dictionary}")
+
+    def info(self) -> dict:
+        """The board as ``board.json`` records it."""
+        return {"board": self.describe(), "squares": list(self.squares), "square_m": self.square_m,
+                "marker_m": self.marker_m, "dictionary": self.dictionary}
 
 
 def board_spec(squares, square_mm: float, marker_mm: float, dictionary: str, where: str = "board") -> BoardSpec:
@@ -178,10 +183,8 @@ class BoardFit:
         return T
 
     def info(self, n_views: int) -> dict:
-        return {"board": self.spec.describe(), "squares": list(self.spec.squares), "square_m": self.spec.square_m,
-                "marker_m": self.spec.marker_m, "dictionary": self.spec.dictionary, "views": self.views,
-                "of_views": n_views, "corners": self.corners, "metres_per_sfm_unit": self.scale,
-                "residual_mm": round(self.residual_mm, 3), "sfm_to_metric": self.matrix.tolist(), "units": "metres",
+        return {**self.spec.info(), "views": self.views, "of_views": n_views, "corners": self.corners,
+                "metres_per_sfm_unit": self.scale, "residual_mm": round(self.residual_mm, 3), "sfm_to_metric": self.matrix.tolist(), "units": "metres",
                 "frame": "board: origin at its centre, z up, x along its rows of squares"}
 
 
@@ -255,11 +258,9 @@ def board_support(pts: np.ndarray, centers: np.ndarray, target: np.ndarray, tole
         return None
     scale = float(np.median(np.linalg.norm(centers - target, axis=1)))
     tol = tolerance * scale
-    h = pts[:, 2]
-    foot = np.array([target[0], target[1], 0.0])
-    obj = pts[(h > 2 * tol) & (np.linalg.norm(pts - foot, axis=1) < scale)]
-    height = float(np.percentile(obj[:, 2], 98)) if len(obj) >= 5 else 2 * float(target[2])
-    return SupportPlane(np.array([0.0, 0, 1]), 0.0, int((np.abs(h) < tol).sum()), tol, height)
+    up = np.array([0.0, 0, 1])
+    height = object_height(object_points(pts, up, 0.0, target, scale, tol), up, 0.0, target)
+    return SupportPlane(up, 0.0, int((np.abs(pts[:, 2]) < tol).sum()), tol, height)
 
 
 def _read_views(folder: Path, names: list[str], Ks: np.ndarray, sizes: np.ndarray):

@@ -123,7 +123,7 @@ def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "
         opts.mapper.init_min_tri_angle = 8.0
         opts.mapper.abs_pose_min_num_inliers = 15
         opts.mapper.abs_pose_min_inlier_ratio = 0.15
-    return pycolmap.incremental_mapping(db, images, out, opts, input_path=base if rung.mapper == "extend" else "")
+    return pycolmap.incremental_mapping(db, images, out, opts, input_path=base)
 
 
 def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camera_model: str, matching: str,

@@ -158,7 +158,7 @@ def find_support(points: np.ndarray, centers: np.ndarray, R: np.ndarray, target:
     if len(inl) < min_count or not plausible(n, d):
         return None
     foot = target - float(target @ n + d) * n
-    obj = points[(points @ n + d > 2 * tol) & (np.linalg.norm(points - foot, axis=1) < scale)]
+    obj = object_points(points, n, d, target, scale, tol)
     flat = obj - np.outer(obj @ n + d, n) - foot  # the object's points dropped onto the plane, from the foot
     footprint = float(np.median(np.linalg.norm(flat, axis=1))) if len(obj) >= 5 else 0.0
     # it lies around the object on several sides (a shelf behind it does not), and spreads at least as wide as the
@@ -166,5 +166,18 @@ def find_support(points: np.ndarray, centers: np.ndarray, R: np.ndarray, target:
     spread = float(np.median(np.linalg.norm(inl - foot, axis=1)))
     if _sectors(inl, foot, n, 0.0, max(2.5 * footprint, 0.25 * scale)) < min_sectors or spread < 0.6 * footprint:
         return None
-    height = float(np.percentile(obj @ n + d, 98)) if len(obj) >= 5 else 2 * float(target @ n + d)
-    return SupportPlane(n, d, int(len(inl)), tol, height)
+    return SupportPlane(n, d, int(len(inl)), tol, object_height(obj, n, d, target))
+
+
+def object_points(points: np.ndarray, n: np.ndarray, d: float, target: np.ndarray, scale: float,
+                  tol: float) -> np.ndarray:
+    """The SfM points of what stands on the plane n·x + d = 0: more than 2 ``tol`` above it and within ``scale`` of
+    the foot of ``target`` (the point the cameras converge on)."""
+    foot = target - float(target @ n + d) * n
+    return points[(points @ n + d > 2 * tol) & (np.linalg.norm(points - foot, axis=1) < scale)]
+
+
+def object_height(obj: np.ndarray, n: np.ndarray, d: float, target: np.ndarray) -> float:
+    """Height of the object (:func:`object_points` ``obj``) above the plane: the 98th percentile of its points'
+    heights; twice the target's height with fewer than 5 points."""
+    return float(np.percentile(obj @ n + d, 98)) if len(obj) >= 5 else 2 * float(target @ n + d)

@@ -31,7 +31,7 @@ from dvr.data import list_images
 from dvr.device import resolve_device
 from dvr.trainer import load_model
 
-from .blend import TexelSurface, bake, sample_bilinear
+from .blend import TexelSurface, bake
 from .cameras_config import TextureConfig
 from .config import config_hash
 from .raycast import mesh_intersector, pixel_center_rays
@@ -247,6 +247,17 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
     stats = {"size": side, "texels": int(valid.sum()), "unseen_frac": float(unseen.mean()) if len(unseen) else 0.0,
              "faces": int(len(nf)), "faces_with_texels": int(len(covered_faces)), "filled": filled}
     return nv, nf, uvs, tex, stats
+
+
+def sample_bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear lookup at continuous (x, y) where integer coordinates are pixel centres (edges clamped)."""
+    h, w = img.shape[:2]
+    x = x.clip(0, w - 1)
+    y = y.clip(0, h - 1)
+    x0, y0 = np.floor(x).astype(int).clip(0, w - 2), np.floor(y).astype(int).clip(0, h - 2)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    return ((img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx) * (1 - fy)
+            + (img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
 
 
 def render_textured(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: np.ndarray, K: np.ndarray,

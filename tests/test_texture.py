@@ -15,9 +15,9 @@ from dvr.cameras import load_cameras
 from pipeline.cameras_config import TextureConfig
 from pipeline.synth import scene_from_dict, write_scene
 from pipeline.synth.render import MeshShape
-from pipeline.blend import ViewSampler, depth_edges, robust_weights, sample_bilinear, sample_visible, sharpness_map
+from pipeline.blend import ViewSampler, depth_edges, robust_weights, sample_visible, sharpness_map
 from pipeline.texture import (depth_maps, dilate_gutter, export_textured, fill_unseen, rasterize_atlas, render_textured,
-                              texel_geometry, texture_mesh)
+                              sample_bilinear, texel_geometry, texture_mesh)
 from tests.conftest import SHARED
 
 W = 256

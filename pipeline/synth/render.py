@@ -525,6 +525,5 @@ def board_truth(ground: Effect, s: float, off: np.ndarray, ground_z: float) -> d
     T = np.eye(4)
     T[:3, :3] *= k
     T[:3, 3] = -k * off - np.array([0.0, 0.0, ground.metres_per_unit * ground_z])
-    return {"board": spec.describe(), "squares": list(spec.squares), "square_m": spec.square_m,
-            "marker_m": spec.marker_m, "dictionary": spec.dictionary, "metres_per_unit": ground.metres_per_unit,
-            "metres_per_world_unit": k, "world_to_board": T.tolist()}
+    return {**spec.info(), "metres_per_unit": ground.metres_per_unit, "metres_per_world_unit": k,
+            "world_to_board": T.tolist()}
