@@ -317,14 +317,16 @@ class Trainer:
             out[near] = ~self.carved(pts[near])
         return out
 
-    def losses(self, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+    def losses(self, step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The weighted loss of one batch and its terms and statistics (detached 0-d tensors: reading them waits for
+        the device, so the loop reads them only when it logs)."""
         c, w, m = self.cfg, self.cfg.weights, self.model
         o, d, rgb, mask, view = self.sampler.sample(c.batch_rays)
         res = find_surface(m.occupancy, o, d, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
                            jitter=c.jitter, generator=None)
         st, inm = res.status, mask > 0.5
         terms: dict[str, torch.Tensor] = {}
-        stats: dict[str, float] = {}
+        stats: dict[str, torch.Tensor] = {}
         hit = st == HIT
         occ_params = m.occupancy_parameters()
 
@@ -399,21 +401,22 @@ class Trainer:
             n2 = finite_difference_normals(m.occupancy, p_s + 0.01 * torch.randn_like(p_s))
             terms["normal"] = L.normal_smoothness_loss(n1, n2)
         total = sum(getattr(w, k) * v for k, v in terms.items())
-        stats.update({k: float(v.detach()) for k, v in terms.items()})
-        stats["hit_frac"] = float(hit.float().mean())
+        stats.update({k: v.detach() for k, v in terms.items()})
+        stats["hit_frac"] = hit.float().mean()
         return total, stats
 
-    def train_step(self, step: int) -> dict[str, float]:
+    def train_step(self, step: int) -> dict[str, torch.Tensor]:
+        """One optimiser step; returns the batch's statistics as detached 0-d tensors (:meth:`losses`)."""
         if step == self.upsample_step:
             self._resize_grid(self.cfg.field.base_res)
         self.opt.zero_grad(set_to_none=True)
         total, stats = self.losses(step)
-        finite = bool(torch.isfinite(total))
-        if finite:
-            total.backward()
-        # guard: never let a non-finite loss or gradient reach the parameters
+        if total.requires_grad:
+            total.backward()  # a non-finite loss leaves non-finite gradients or none: both are refused below
+        # guard: never let a non-finite loss or gradient reach the parameters (one wait for the device per step)
         grads = [p.grad for g in self.opt.param_groups for p in g["params"] if p.grad is not None]
-        if finite and all(bool(torch.isfinite(g).all()) for g in grads):
+        finite = torch.stack([torch.isfinite(total), *(torch.isfinite(g).all() for g in grads)]).all()
+        if bool(finite):
             self.opt.step()
             self.sched.step()
         else:
@@ -421,7 +424,7 @@ class Trainer:
             with warnings.catch_warnings():  # the schedule follows the step count, skipped steps included
                 warnings.simplefilter("ignore", UserWarning)
                 self.sched.step()
-        stats["loss"] = float(total.detach()) if finite else float("nan")
+        stats["loss"] = total.detach()
         return stats
 
     # ----------------------------------------------------------------- loop
@@ -454,6 +457,7 @@ class Trainer:
                 rays_since += c.batch_rays
                 last = stats
                 if self.step % c.log_every == 0 or self.step == c.iterations:
+                    stats = _floats(stats)
                     now = time.perf_counter()
                     stats["rays_per_s"] = rays_since / max(1e-9, now - t_last)
                     t_last, rays_since = now, 0
@@ -472,7 +476,7 @@ class Trainer:
         finally:
             bar.close()
             log.close()
-        return last
+        return _floats(last)
 
     def write_appearance(self, path: Path) -> None:
         """The fitted per-view colour transforms, by image name: a gain per RGB channel."""
@@ -489,6 +493,11 @@ class Trainer:
             self.write_appearance(self.out / "appearance.json")
         self.preview("final")
         return path
+
+
+def _floats(stats: dict[str, torch.Tensor | float]) -> dict[str, float]:
+    """Statistics as plain floats (reading tensors waits for the device)."""
+    return {k: float(v) for k, v in stats.items()}
 
 
 def train(cfg: TrainConfig, data: SceneData, out_dir: Path, stop_after: int | None = None) -> Trainer:

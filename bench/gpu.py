@@ -1,0 +1,96 @@
+"""Training on a GPU against 2 CPU cores: the train stage of the bench's cow (GT cameras) and DTU scan24 (photos only)
+workspaces on whatever device ``device: auto`` finds, then mesh, texture and held-out PSNR as in ``bench/run.py``.
+
+    python bench/gpu.py prepare DIR            # here: the two training workspaces (images, masks, cameras, depth)
+    python bench/gpu.py train DIR [RUN...]     # on the GPU machine: the train stage per run → DIR/gpu.json
+                                               # (RUN: SCENE:PRESET; default cow:default cow:quality dtu:default)
+    python bench/gpu.py evaluate DIR           # here again: mesh + texture + held-out PSNR per trained model
+
+The GPU machine needs torch, numpy, scipy, scikit-image, opencv, tyro, trimesh and PyYAML (no pycolmap, pymeshlab,
+xatlas: the stages that need them run in the evaluate step).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+SCENES = ("cow", "dtu")
+
+
+def prepare(out: Path) -> None:
+    """The workspaces ``bench/run.py`` trains on: the cow with GT cameras, DTU without every 7th photo."""
+    from bench.evaluate import RUNS, scene, subset_workspace
+    from dvr.data import list_images
+
+    shutil.copytree(scene("cow", {}), out / "cow", ignore=shutil.ignore_patterns("gt", "depth"))
+    full = RUNS / "dtu_all"
+    if not (full / ".stages" / "depth.json").exists():
+        sys.exit(f"{full}: missing; run `python bench/run.py` once (its DTU row) to build it")
+    n = len(list_images(full / "images"))
+    subset_workspace(full, out / "dtu", [i for i in range(n) if i % 7 != 0])
+
+
+def train(out: Path, runs: list[str]) -> None:
+    """Train each ``scene:preset`` on the device ``auto`` picks; seconds into ``out/gpu.json``."""
+    import torch
+
+    rec = {"device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu", "runs": []}
+    for name, preset in (r.split(":") for r in runs):
+        if name not in SCENES:
+            sys.exit(f"{name}: not a scene of this bench ({', '.join(SCENES)})")
+        ws = out / "runs" / f"{name}_{preset}"
+        shutil.rmtree(ws, ignore_errors=True)
+        shutil.copytree(out / name, ws)
+        subprocess.run([sys.executable, "-m", "pipeline", "train", str(ws), "--config",
+                        str(ROOT / "configs" / f"{preset}.yaml"), "--train.no-progress"], cwd=ROOT, check=True)
+        secs = json.loads((ws / ".stages" / "train.json").read_text())["seconds"]
+        rec["runs"].append({"scene": name, "preset": preset, "train_seconds": secs})
+        print(f"{name} {preset}: train {secs:.1f} s on {rec['device']}", flush=True)
+    (out / "gpu.json").write_text(json.dumps(rec, indent=1))
+
+
+def evaluate(out: Path) -> None:
+    """Mesh and texture here for each trained workspace, then held-out PSNR (bench/evaluate.py's protocol)."""
+    from bench.evaluate import RUNS, _read_mask, _read_rgb, render_psnr, sfm_centres, textured
+    from dvr.cameras import load_cameras
+    from dvr.data import list_images
+
+    rec = json.loads((out / "gpu.json").read_text())
+    for run in rec["runs"]:
+        ws = out / "runs" / f"{run['scene']}_{run['preset']}"
+        shutil.copytree(out / run["scene"], ws, dirs_exist_ok=True)  # only the model came back from the GPU
+        for stage in ("mesh", "texture"):
+            subprocess.run([sys.executable, "-m", "pipeline", stage, str(ws), "--config",
+                            str(ROOT / "configs" / f"{run['preset']}.yaml")], cwd=ROOT, check=True)
+        tm, tex = textured(ws)
+        if run["scene"] == "cow":
+            syn = RUNS / "scenes" / "cow"
+            cams = load_cameras(syn / "gt" / "heldout" / "cameras.npz")
+            photos = sorted((syn / "gt" / "heldout" / "images").glob("*.png"))
+            views = [(i, p, syn / "gt" / "heldout" / "masks" / p.name) for i, p in enumerate(photos)]
+        else:
+            full = RUNS / "dtu_all"
+            cams, photos = load_cameras(full / "cameras.npz"), list_images(full / "images")
+            views = [(i, p, full / "masks" / f"{p.stem}.png") for i, p in enumerate(photos) if i % 7 == 0]
+        run["psnr"] = float(np.mean([render_psnr(tm, tex, cams.K[i], cams.R[i], sfm_centres(cams)[i], _read_rgb(p),
+                                                 _read_mask(m)) for i, p, m in views]))
+        print(f"{run['scene']} {run['preset']}: train {run['train_seconds']:.1f} s on {rec['device']}, "
+              f"held-out PSNR {run['psnr']:.2f} dB")
+    (out / "gpu.json").write_text(json.dumps(rec, indent=1))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 3 or sys.argv[1] not in ("prepare", "train", "evaluate"):
+        sys.exit(__doc__)
+    step, folder = sys.argv[1], Path(sys.argv[2])
+    {"prepare": lambda: prepare(folder), "train": lambda: train(folder, sys.argv[3:] or ["cow:default", "cow:quality", "dtu:default"]),
+     "evaluate": lambda: evaluate(folder)}[step]()
