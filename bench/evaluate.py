@@ -29,6 +29,7 @@ SCENES = {
     "cow_float": ROOT / "configs" / "scenes" / "cow_backdrop.yaml",
     "sphere": ROOT / "configs" / "scenes" / "sphere_checker.yaml",
     "torus_board": ROOT / "configs" / "scenes" / "torus_board.yaml",
+    "sphere_board": ROOT / "configs" / "scenes" / "sphere_checker_board.yaml",
 }
 HELDOUT = "heldout_"
 """Prefix of the held-out photos in a photos-only run's folder (sorted after the training photos)."""

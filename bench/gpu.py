@@ -5,6 +5,7 @@ workspaces on whatever device ``device: auto`` finds, then mesh, texture and hel
     python bench/gpu.py train DIR [RUN...]     # on the GPU machine: the train stage per run → DIR/gpu.json
                                                # (RUN: SCENE:PRESET; default cow:default cow:quality dtu:default)
     python bench/gpu.py evaluate DIR           # here again: mesh + texture + held-out PSNR per trained model
+    python bench/gpu.py profile DIR            # on the GPU machine: where a default training step's time goes
 
 The GPU machine needs torch, numpy, scipy, scikit-image, opencv, tyro, trimesh and PyYAML (no pycolmap, pymeshlab,
 xatlas: the stages that need them run in the evaluate step).
@@ -88,9 +89,49 @@ def evaluate(out: Path) -> None:
     (out / "gpu.json").write_text(json.dumps(rec, indent=1))
 
 
+def profile(out: Path, steps: int = 20) -> None:
+    """Time a default-preset training step on the cow and profile ``steps`` of them: host time, device time,
+    kernel launches and waits for the device per step."""
+    import time
+
+    import torch
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    from dvr.data import load_scene
+    from dvr.device import resolve_device
+    from dvr.trainer import Trainer
+    from pipeline.config import load_config
+
+    cfg = load_config(ROOT / "configs" / "default.yaml").train
+    cfg.progress = False
+    dev = resolve_device("auto")
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    t = Trainer(cfg, load_scene(out / "cow", dev), out / "profile")
+    for i in range(100):  # warm-up
+        t.train_step(i)
+    sync()
+    t0 = time.perf_counter()
+    for i in range(100, 150):
+        t.train_step(i)
+    sync()
+    print(f"{(time.perf_counter() - t0) / 50 * 1e3:.1f} ms per step on {dev}")
+    with torch_profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        for i in range(150, 150 + steps):
+            t.train_step(i)
+        sync()
+    ka = prof.key_averages()
+    print(ka.table(sort_by="self_cpu_time_total", row_limit=15, max_name_column_width=40))
+    busy = sum(e.self_device_time_total for e in ka if e.device_type == DeviceType.CUDA) / steps / 1e3  # kernels
+    launches = sum(e.count for e in ka if e.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC"))
+    waits = sum(e.count for e in ka if "Synchronize" in e.key)
+    print(f"per step: device busy {busy:.2f} ms, {launches / steps:.0f} kernel launches, {waits / steps:.0f} waits")
+
+
 if __name__ == "__main__":
-    if len(sys.argv) < 3 or sys.argv[1] not in ("prepare", "train", "evaluate"):
+    if len(sys.argv) < 3 or sys.argv[1] not in ("prepare", "train", "evaluate", "profile"):
         sys.exit(__doc__)
     step, folder = sys.argv[1], Path(sys.argv[2])
     {"prepare": lambda: prepare(folder), "train": lambda: train(folder, sys.argv[3:] or ["cow:default", "cow:quality", "dtu:default"]),
-     "evaluate": lambda: evaluate(folder)}[step]()
+     "evaluate": lambda: evaluate(folder), "profile": lambda: profile(folder)}[step]()

@@ -129,7 +129,9 @@ def cameras_table(results: list[dict]) -> str:
             pe += f"; in metres: centres {mt['centre_err_mm_mean']:.1f} mm off (max {mt['centre_err_mm_max']:.1f}), " \
                   f"scale ×{mt['scale']:.4f}"
         climbed = " → ".join(x["rung"] for x in r.get("rungs") or [])
-        lines.append(f"| {r['condition']} | {r.get('rung') or '–'} ({climbed}) | {r['registered']} | {pe} | "
+        rung = r.get("rung") or "–"
+        rung = f"{rung} ({climbed})" if climbed else "board (SfM failed)" if rung == "board" else rung
+        lines.append(f"| {r['condition']} | {rung} | {r['registered']} | {pe} | "
                      f"{r['seconds'].get('cameras', 0):.0f} | {sp} |")
     return "\n".join(lines)
 

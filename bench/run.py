@@ -81,6 +81,7 @@ CONDITIONS = {
     "phone folder: EXIF 1/3/6/8, mixed sizes, JPEG": ("cow", {}, phone_folder),
     "checkered sphere (symmetric, repetitive)": ("sphere", {}, None),
     "torus on a printed ChArUco board (metric scale)": ("torus_board", {}, None),
+    "checkered sphere on a printed ChArUco board (poses from the board)": ("sphere_board", {}, None),
 }
 
 
@@ -104,7 +105,7 @@ def plan(quick: bool) -> list[dict]:
         return [{"scene": "cow", "cameras": "gt", "preset": p} for p in ("fast", "default")]
     out = [{"scene": s, "cameras": "gt", "preset": p} for s in FLOOR_SCENES for p in ("fast", "default", "quality")]
     out += [{"scene": "cow_float", "cameras": "gt", "preset": "default"}]
-    out += [{"scene": s, "cameras": "sfm", "preset": "default"} for s in (*FLOOR_SCENES, "cow_float")]
+    out += [{"scene": s, "cameras": "sfm", "preset": "default"} for s in (*FLOOR_SCENES, "cow_float", "sphere_board")]
     out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k} for k in KNOBS]
     out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k, "ablation": True} for k in ABLATIONS]
     out += [{"scene": "dtu", "cameras": "sfm", "preset": p} for p in ("fast", "default")]

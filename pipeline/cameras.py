@@ -19,7 +19,9 @@ import numpy as np
 
 from dvr.cameras import decompose_projection, save_cameras, sphere_frame
 
-from .board import board_support, use_board
+from .board import board_support, spec_from_config, use_board
+from .board_poses import (BoardCameras, board_info, board_plane, require_board_cameras, write_board_json,
+                          write_board_views)
 from .cameras_config import CamerasConfig
 from .config import config_hash
 from .photos import PHOTO_EXTS, is_readable, read_photo, read_upright
@@ -319,6 +321,33 @@ def support_info(support: SupportPlane | None, S: np.ndarray) -> dict | None:
     return info
 
 
+def export_board_cameras(ws: Workspace, photos: list[Path], cfg: CamerasConfig, cams: BoardCameras,
+                         why_not_sfm: str) -> dict:
+    """Cameras posed from the printed board (:mod:`pipeline.board_poses`): undistorted images/, cameras.npz in
+    metres, the board's plane as the support plane, no SfM points."""
+    for stale in ("undistorted", "sparse"):  # SfM's model with the wrong poses: later stages must not read it
+        shutil.rmtree(ws.root / "sfm" / stale, ignore_errors=True)
+    if ws.images.exists():
+        shutil.rmtree(ws.images)
+    ws.images.mkdir(parents=True)
+    Ks, sizes = write_board_views(cams, photos, ws.images, cfg.max_side)
+    centers = -np.einsum("nji,nj->ni", cams.R, cams.t)
+    target = axes_convergence(centers, cams.R[:, 2, :])
+    support = board_plane(cams, target) if cfg.support else None
+    Ps = Ks @ np.concatenate([cams.R, cams.t[:, :, None]], 2)
+    S = normalization(np.zeros((0, 3)), Ps, sizes, centers, cams.R[:, 2, :], cfg.radius_margin, focals=Ks[:, 0, 0],
+                      support=support)
+    save_cameras(ws.cameras, Ks, cams.R, cams.t, S, None if support is None else support.vector)
+    write_points(ws.root / "points.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+    info = board_info(cams, spec_from_config(cfg), len(photos), why_not_sfm)
+    write_board_json(ws.root, info)
+    print(f"cameras: SfM could not pose the photos; the printed board poses {len(cams.names)}/{len(photos)} "
+          f"(its corners fit to {cams.rms_px:.2f} px, focal {cams.K[0, 0]:.0f} px) → cameras in metres, origin at "
+          "the board's centre, z up")
+    return {"views": cams.names, "rung": "board", "registered": f"{len(cams.names)}/{len(photos)}",
+            "radius": float(S[0, 0]), "center": S[:3, 3].tolist(), "support": support_info(support, S), "board": info}
+
+
 # ----------------------------------------------------------------------------- given cameras
 def import_cameras(ws: Workspace, photos: list[Path], cam_file: Path, cfg: CamerasConfig) -> dict:
     """Use given cameras (IDR/NeuS/DVR cameras.npz, one world_mat per photo in sorted order): skip SfM."""
@@ -401,10 +430,13 @@ def run(ws: Workspace, images: Path | None, cfg: CamerasConfig, cameras: Path | 
     elif cameras is not None:
         info = import_cameras(ws, photos, Path(cameras), cfg)
     else:
-        rec, inp, ladder_info = run_sfm(ws, photos, cfg)
-        info = report_sfm(rec, [p.stem for p in photos], cfg)
-        info.update(ladder_info)
-        info.update(export_model(ws, rec, inp, cfg, [p.stem for p in photos]))
+        try:
+            rec, inp, ladder_info = run_sfm(ws, photos, cfg)
+            info = report_sfm(rec, [p.stem for p in photos], cfg)
+            info.update(ladder_info)
+            info.update(export_model(ws, rec, inp, cfg, [p.stem for p in photos]))
+        except StageError as exc:  # SfM cannot pose them (a symmetric object): a printed board in view still can
+            info = export_board_cameras(ws, photos, cfg, require_board_cameras(photos, cfg, exc), str(exc))
     ws.mark_done("cameras", h, time.perf_counter() - t0, {k: v for k, v in info.items() if k != "views"})
     print(f"cameras: {len(info['views'])} views → {ws.cameras}")
     return True

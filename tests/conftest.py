@@ -38,3 +38,24 @@ def small_ws(tmp_path_factory):
     ws = tmp_path_factory.mktemp("small")
     write_scene(small_scene(sparse_depth=50), ws)
     return ws
+
+
+@pytest.fixture(scope="session")
+def board_scene(tmp_path_factory):
+    """configs/scenes/torus_board.yaml, 8 views, albedo only (≈ 15 s on 2 cores): images, GT cameras, gt/board.json."""
+    import json
+
+    import cv2
+    import yaml
+
+    from dvr.cameras import load_cameras
+    from pipeline.synth import write_scene
+    from pipeline.synth.scene import scene_from_dict
+
+    d = yaml.safe_load((ROOT / "configs/scenes/torus_board.yaml").read_text())
+    d["lighting"] = {"kind": "none"}
+    d["cameras"].update(n_views=8, heldout=0)
+    out = tmp_path_factory.mktemp("torus_board")
+    write_scene(scene_from_dict(d, ROOT / "configs/scenes"), out)
+    images = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted((out / "images").glob("*.png"))]
+    return out, images, load_cameras(out / "cameras.npz"), json.loads((out / "gt/board.json").read_text())

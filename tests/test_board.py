@@ -3,37 +3,20 @@ arbitrary scale, no board → nothing changes, bad board definitions → one-lin
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-import yaml
 
-from dvr.cameras import load_cameras
 from pipeline.board import (board_spec, detect, locate, make_board, mesh_units, page_image, to_board_frame, use_board,
                             write_page)
 from pipeline.cameras_config import CamerasConfig
 from pipeline.cli import main
-from pipeline.synth import write_scene
-from pipeline.synth.scene import scene_from_dict
 from pipeline.workspace import StageError
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = board_spec((5, 7), 35, 26, "DICT_4X4_50")
-
-
-@pytest.fixture(scope="module")
-def board_scene(tmp_path_factory):
-    """configs/scenes/torus_board.yaml, 8 views, albedo only (≈ 15 s on 2 cores): images, GT cameras, gt/board.json."""
-    d = yaml.safe_load((ROOT / "configs/scenes/torus_board.yaml").read_text())
-    d["lighting"] = {"kind": "none"}
-    d["cameras"].update(n_views=8, heldout=0)
-    out = tmp_path_factory.mktemp("torus_board")
-    write_scene(scene_from_dict(d, ROOT / "configs/scenes"), out)
-    images = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted((out / "images").glob("*.png"))]
-    return out, images, load_cameras(out / "cameras.npz"), json.loads((out / "gt/board.json").read_text())
 
 
 def _projections(cams, scale: float = 1.0, shift=(0.0, 0.0, 0.0)):
