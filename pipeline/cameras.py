@@ -26,7 +26,7 @@ from .cameras_config import CamerasConfig
 from .config import config_hash
 from .photos import PHOTO_EXTS, is_readable, read_photo, read_upright
 from .pose_sanity import axes_convergence, pose_sanity
-from .sfm import ladder, model_stats, run_rung, shortfalls
+from .sfm import ladder, model_stats, run_rung, shortfalls, triangulate_at
 from .support import SupportPlane, find_support
 from .workspace import StageError, Workspace
 
@@ -254,8 +254,10 @@ def report_sfm(rec, names: list[str], cfg: CamerasConfig) -> dict:
     return info
 
 
-def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names: list[str]) -> dict:
-    """Undistort the model to PINHOLE, write images/, cameras.npz and points.ply."""
+def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names: list[str],
+                 scale_mat: np.ndarray | None = None) -> dict:
+    """Undistort the model to PINHOLE, write images/, cameras.npz and points.ply; ``scale_mat``: the object's sphere
+    as given with the cameras (else found from the points)."""
     import pycolmap
 
     und = ws.root / "sfm" / "undistorted"
@@ -300,7 +302,11 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
     target = axes_convergence(centers, Rs[:, 2, :])
     support = board_support(pts, centers, target) if fit is not None and cfg.support else None  # the board's plane
     support = support or (find_support(pts, centers, Rs, target) if cfg.support else None)
-    S = normalization(pts, Ps, sizes, centers, Rs[:, 2, :], cfg.radius_margin, focals=Ks[:, 0, 0], support=support)
+    if scale_mat is None:
+        S = normalization(pts, Ps, sizes, centers, Rs[:, 2, :], cfg.radius_margin, focals=Ks[:, 0, 0],
+                          support=support)
+    else:  # the given sphere, moved with the cameras when a board put them in metres
+        S = scale_mat if fit is None else fit.matrix @ scale_mat
     save_cameras(ws.cameras, Ks, Rs, ts, S, None if support is None else support.vector)
     write_points(ws.root / "points.ply", pts, cols)
     return {"views": kept, "radius": float(S[0, 0]), "center": S[:3, 3].tolist(), "support": support_info(support, S),
@@ -316,7 +322,7 @@ def support_info(support: SupportPlane | None, S: np.ndarray) -> dict | None:
     info = {"normal": np.round(support.normal, 4).tolist(), "offset": round(float(support.offset), 6),
             "inliers": support.inliers, "object_height": round(support.object_height / S[0, 0], 4),
             "sphere_centre_height": round(centre_h, 4)}
-    print(f"cameras: support plane found: {support.inliers} SfM points on it, the object stands "
+    print(f"cameras: support plane found: {support.inliers} points on it, the object stands "
           f"{info['object_height']:.2f} high on it (unit sphere radii; the sphere centre {centre_h:.2f} above it)")
     return info
 
@@ -358,25 +364,63 @@ def import_cameras(ws: Workspace, photos: list[Path], cam_file: Path, cfg: Camer
         raise StageError(f"{cam_file}: cannot read cameras ({exc}); pass an IDR/DVR cameras.npz") from exc
     if n != len(photos):
         raise StageError(f"{cam_file}: {n} cameras for {len(photos)} photos; give one world_mat_i per photo")
-    scale = z["scale_mat"] if "scale_mat" in z.files else z["scale_mat_0"] if "scale_mat_0" in z.files else np.eye(4)
+    scale = z["scale_mat"] if "scale_mat" in z.files else z["scale_mat_0"] if "scale_mat_0" in z.files else None
+    given = [decompose_projection(np.asarray(z[f"world_mat_{i}"], float)[:3, :4]) for i in range(n)]
+    if cfg.triangulate_given:
+        info = triangulate_given(ws, photos, cfg, given, None if scale is None else np.asarray(scale, float))
+        if info is not None:
+            return {**info, "given": str(cam_file)}
     if ws.images.exists():
         shutil.rmtree(ws.images)
     ws.images.mkdir(parents=True)
     Ks, Rs, ts = [], [], []
-    for i, p in enumerate(photos):
+    for p, (K, R, t) in zip(photos, given):
         full = read_photo(p)
         h, w = full.shape[:2]
         img = read_upright(p, cfg.max_side)
         nh, nw = img.shape[:2]
         cv2.imwrite(str(ws.images / f"{p.stem}.png"), img)
-        K, R, t = decompose_projection(np.asarray(z[f"world_mat_{i}"], float)[:3, :4])
-        K = K.copy()
-        K[0] *= nw / w
-        K[1] *= nh / h
-        Ks.append(K), Rs.append(R), ts.append(t)
-    save_cameras(ws.cameras, np.stack(Ks), np.stack(Rs), np.stack(ts), np.asarray(scale, float))
+        Ks.append(np.diag([nw / w, nh / h, 1.0]) @ K), Rs.append(R), ts.append(t)
+    save_cameras(ws.cameras, np.stack(Ks), np.stack(Rs), np.stack(ts), np.eye(4) if scale is None else
+                 np.asarray(scale, float))
     write_points(ws.root / "points.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
     return {"views": [p.stem for p in photos], "given": str(cam_file)}
+
+
+def triangulate_given(ws: Workspace, photos: list[Path], cfg: CamerasConfig, given: list, scale: np.ndarray | None):
+    """Given cameras (K for the full photo, R, t) get what our own SfM gives: features matched and triangulated at
+    the given poses (:func:`pipeline.sfm.triangulate_at`), so sparse depth, the support plane and the masks' tracks
+    exist too; a given scale_mat stays the object's sphere (else it is found as after SfM). None (and a warning)
+    when too few points come out."""
+    inp, _ = prepare_sfm_input(ws, photos, cfg)
+    names = [p.stem for p in photos]
+    Ks = []
+    for p, (K, _, _) in zip(photos, given):
+        h, w = read_photo(p).shape[:2]
+        ih, iw = cv2.imread(str(inp / f"{p.stem}.png"), cv2.IMREAD_UNCHANGED).shape[:2]
+        Ks.append(np.diag([iw / w, ih / h, 1.0]) @ K)
+    t0 = time.perf_counter()
+    try:
+        rec = triangulate_at(ws.root / "sfm" / "given", inp, names, np.stack(Ks), np.stack([g[1] for g in given]),
+                             np.stack([g[2] for g in given]), cfg.matching, cfg.max_features)
+        n_points = rec.num_points3D()
+    except Exception as exc:  # noqa: BLE001 — COLMAP failing here costs the depth, not the given cameras
+        rec, n_points = None, f"0 ({exc})"
+    if rec is None or rec.num_points3D() < 50:
+        print(f"warning: only {n_points} points triangulated at the given cameras: no sparse depth and no "
+              "support plane (photos with little texture?)", file=sys.stderr)
+        shutil.rmtree(ws.root / "sfm", ignore_errors=True)
+        return None
+    print(f"cameras: given cameras: {rec.num_points3D()} points triangulated at their poses "
+          f"({rec.compute_mean_reprojection_error():.2f} px, track length {rec.compute_mean_track_length():.2f}) "
+          f"in {time.perf_counter() - t0:.1f} s")
+    best = ws.root / "sfm" / "sparse" / "best"
+    best.mkdir(parents=True, exist_ok=True)
+    rec.write(best)
+    shutil.copy(ws.root / "sfm" / "given" / "given.db", ws.root / "sfm" / "database.db")
+    info = report_sfm(rec, names, cfg)
+    info.update(export_model(ws, rec, inp, cfg, names, scale_mat=scale))
+    return info
 
 
 def import_colmap_model(ws: Workspace, photos: list[Path], images: Path, model: Path, cfg: CamerasConfig) -> dict:

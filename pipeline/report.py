@@ -124,14 +124,22 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
                           + (f", {r['error']}" if r.get("error") else "") for r in cameras_stamp["rungs"])
         out.append(f"<li>SfM ladder: {html.escape(steps)} → kept <b>{html.escape(str(cameras_stamp.get('rung')))}</b>"
                    "</li>")
+    board = cameras_stamp.get("board") or {}
+    from_board = board.get("poses_from") == "board"
+    if from_board:
+        out.append(f"<li>SfM could not pose the photos ({html.escape(str(board.get('sfm_failed', '')))}); the printed "
+                   f"board posed {board.get('views')}/{board.get('photos')} of them instead (corners fit to "
+                   f"{board.get('rms_px')} px, focal {board.get('focal_px')} px): cameras and mesh in metres, no "
+                   "SfM points, no sparse depth.</li>")
     ground = None
     if ws.cameras.exists():
         z = np.load(ws.cameras)
         ground = z["ground_plane"] if "ground_plane" in z.files else None
     sup = cameras_stamp.get("support")
     if ground is not None:
-        detail = (f": {sup['inliers']} SfM points on it, the object stands {sup['object_height']:.2f} unit-sphere radii "
-                  f"high on it" if sup else "")
+        on_it = f"the board's plane, {sup['inliers']} of its corners" if from_board and sup else \
+            f"{sup['inliers']} SfM points on it" if sup else ""
+        detail = f": {on_it}, the object stands {sup['object_height']:.2f} unit-sphere radii high on it" if sup else ""
         out.append(f"<li>support plane found{detail} (normal {np.round(ground[:3], 3).tolist()} in the SfM frame). "
                    "It is background for the masks (orange outline in the overlays), nothing below it is object, "
                    "and the mesh is closed flat where the object touches it.</li>")

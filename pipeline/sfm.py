@@ -193,6 +193,44 @@ def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, came
 
 
 # ----------------------------------------------------------------------------- judging a model
+def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, Rs: np.ndarray, ts: np.ndarray,
+                   matching: str, max_features: int):
+    """Sparse points of photos whose cameras are given (``images/<name>.png``; intrinsics for those pixels, world →
+    camera poses): the default rung's SIFT features and matches, then COLMAP's point triangulator at the given
+    poses (no mapping, no pose refinement). Returns the model; its database is ``work/given.db``."""
+    import pycolmap
+
+    work.mkdir(parents=True, exist_ok=True)
+    db = work / "given.db"
+    db.unlink(missing_ok=True)
+    rung = ladder("default", "default", max_features)[0]
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.sift.max_num_features = rung.max_features
+    pycolmap.extract_features(db, images, image_names=[f"{n}.png" for n in names],
+                              camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader, extraction_options=ext)
+    _match(db, len(names), rung, matching)
+    rec = pycolmap.Reconstruction()
+    database = pycolmap.Database.open(str(db))
+    try:
+        for img in database.read_all_images():
+            i = names.index(img.name.rsplit(".", 1)[0])
+            cam = database.read_camera(img.camera_id)
+            cam.model = pycolmap.CameraModelId.PINHOLE
+            cam.params = [Ks[i][0, 0], Ks[i][1, 1], Ks[i][0, 2], Ks[i][1, 2]]
+            rec.add_camera_with_trivial_rig(cam)
+            image = pycolmap.Image(name=img.name, keypoints=database.read_keypoints(img.image_id)[:, :2],
+                                   camera_id=img.camera_id, image_id=img.image_id)
+            rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(Rs[i]), ts[i]))
+    finally:
+        database.close()
+    out = work / "model"
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir()
+    return pycolmap.triangulate_points(rec, db, images, out)
+
+
 def model_stats(rec, names: list[str]) -> dict:
     """Registered photos, reprojection error, track length and the median number of points a view observes."""
     reg = [rec.image(i) for i in rec.reg_image_ids()]

@@ -101,3 +101,14 @@ def test_without_a_board_the_sfm_error_stands(small_ws, tmp_path, monkeypatch):
     with pytest.raises(StageError) as e:
         cameras_stage.run(ws, small_ws / "images", CamerasConfig(board=False))
     assert str(e.value) == SFM_FAILS
+
+
+def test_report_says_the_poses_came_from_the_board(tmp_path):
+    from pipeline.report import capture_section
+
+    stamp = {"rung": "board", "board": {"poses_from": "board", "views": 36, "photos": 36, "rms_px": 0.17,
+                                        "focal_px": 483.4, "sfm_failed": SFM_FAILS},
+             "support": {"inliers": 570, "object_height": 0.53}}
+    text = capture_section(Workspace(tmp_path), stamp)
+    assert "the printed board posed 36/36" in text and SFM_FAILS in text
+    assert "no support plane" in text  # no cameras.npz in this workspace: nothing claims a plane

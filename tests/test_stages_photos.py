@@ -170,13 +170,30 @@ def test_exif_orientation_applied_for_sfm_and_training(tmp_path):
 
 
 def test_given_cameras_skip_sfm(photo_ws, tmp_path):
+    """Given cameras are kept as given (no mapping); features are triangulated at their poses, so sparse depth
+    exists as after SfM, and the depths agree with the GT depth maps; without triangulation: no points, no depth."""
     syn, _ = photo_ws
     ws = tmp_path / "given"
     assert main(["cameras", str(ws), "--images", str(syn / "images"), "--cameras", str(syn / "cameras.npz")]) == 0
     a, b = load_cameras(ws / "cameras.npz"), load_cameras(syn / "cameras.npz")
-    assert np.allclose(a.centers, b.centers) and np.allclose(a.K, b.K)
-    assert not (ws / "sfm").exists()
-    assert main(["depth", str(ws)]) == 0 and not (ws / "depth").exists()
+    assert np.allclose(a.centers, b.centers, atol=1e-6) and np.allclose(a.K, b.K, atol=1e-6)
+    assert np.allclose(a.scale_mat, b.scale_mat)
+    assert not (ws / "sfm" / "ladder").exists()  # no mapping ran
+    assert main(["depth", str(ws)]) == 0
+    rel = []
+    for i in range(N_VIEWS):
+        z, g = np.load(ws / "depth" / f"{i:06d}.npz"), np.load(syn / "gt" / "depth" / f"{i:06d}.npy")
+        ij = np.floor(z["uv"]).astype(int)
+        gv = g[ij[:, 1], ij[:, 0]]
+        ok = gv > 0
+        rel.append(np.abs(z["depth"][ok] * a.scale_mat[0, 0] - gv[ok]) / gv[ok])
+    rel = np.concatenate(rel)
+    assert len(rel) > 200 and np.median(rel) <= 0.005, (len(rel), np.median(rel))
+    plain = tmp_path / "plain"
+    assert main(["cameras", str(plain), "--images", str(syn / "images"), "--cameras", str(syn / "cameras.npz"),
+                 "--cameras-cfg.no-triangulate-given"]) == 0
+    assert not (plain / "sfm").exists()
+    assert main(["depth", str(plain)]) == 0 and not (plain / "depth").exists()
 
 
 def test_given_colmap_model_skips_sfm(photo_ws, tmp_path, capsys):
@@ -288,3 +305,20 @@ def test_floating_object_has_no_support_plane(photo_ws):
     assert "ground_plane" not in np.load(ws / "cameras.npz").files
     assert load_cameras(ws / "cameras.npz").ground is None
     assert json.loads((ws / ".stages" / "cameras.json").read_text())["support"] is None
+
+
+def test_given_cameras_survive_a_failed_triangulation(small_ws, tmp_path, monkeypatch, capsys):
+    """COLMAP failing on the given photos costs the sparse depth, never the given cameras: one warning line."""
+    from pipeline import cameras as cameras_stage
+
+    def fails(*args, **kwargs):
+        raise RuntimeError("no features")
+
+    monkeypatch.setattr(cameras_stage, "triangulate_at", fails)
+    ws = tmp_path / "given"
+    assert main(["cameras", str(ws), "--images", str(small_ws / "images"), "--cameras",
+                 str(small_ws / "cameras.npz")]) == 0
+    assert "points triangulated at the given cameras" in capsys.readouterr().err
+    assert not (ws / "sfm").exists()
+    a, b = load_cameras(ws / "cameras.npz"), load_cameras(small_ws / "cameras.npz")
+    assert np.allclose(a.centers, b.centers) and np.allclose(a.scale_mat, b.scale_mat)
