@@ -9,13 +9,13 @@ stage's last resort, used only when the SfM ladder fails or its poses contradict
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .board import board_points, detect, make_board, spec_from_config
+from .board import board_points, board_support, detect, make_board, spec_from_config
 from .photos import read_photo
 from .support import SupportPlane
 from .workspace import StageError
@@ -52,8 +52,8 @@ def calibrate(views: dict[str, tuple[np.ndarray, np.ndarray]], size: tuple[int, 
     """One camera (focal, principal point fixed at the centre, k1) and a pose per view from the corners ``views``
     (name → ids, pixel positions in this project's convention) seen in photos of ``size`` (w, h). A corner next to
     the object is sometimes interpolated from a marker the object half hides (5–6 px off): corners off their photo's
-    board → image homography (RANSAC, ``ransac_px``) are dropped first, then those the fit puts over 3 × the median error (at least 1 px) away, and
-    the fit repeated."""
+    board → image homography (RANSAC, ``ransac_px``) are dropped first, then those the fit puts over 3 × the
+    median error (at least 1 px) away, and the fit repeated."""
     names = sorted(views)
     obj = [board_points(spec, views[n][0]).astype(np.float32) for n in names]
     img = [(views[n][1] - 0.5).astype(np.float32) for n in names]  # OpenCV: pixel centres at integers
@@ -85,7 +85,7 @@ def calibrate(views: dict[str, tuple[np.ndarray, np.ndarray]], size: tuple[int, 
 def board_cameras(photos: list[Path], cfg) -> tuple[BoardCameras | None, str]:
     """Pose the photos from the board; (None, why) when it cannot (no board, too few photos see it, photos of
     several sizes, a poor fit)."""
-    spec, board = spec_from_config(cfg), None
+    spec = spec_from_config(cfg)
     board = make_board(spec)
     views, sizes = {}, set()
     for p in photos:
@@ -123,14 +123,11 @@ def write_board_views(cams: BoardCameras, photos: list[Path], out: Path, max_sid
 
 
 def board_plane(cams: BoardCameras, target: np.ndarray) -> SupportPlane | None:
-    """The board's plane z = 0 as the support plane when the cameras look down on it; with no SfM points the
-    object's height is unknown: the height of the point the cameras aim at, twice (an upper bound the masks and
-    the hull refine)."""
-    centers = -np.einsum("nji,nj->ni", cams.R, cams.t)
-    if np.mean(centers[:, 2] > 0) < 0.9 or target[2] <= 0:
-        return None
-    scale = float(np.median(np.linalg.norm(centers - target, axis=1)))
-    return SupportPlane(np.array([0.0, 0, 1]), 0.0, cams.corners, 0.01 * scale, 2.0 * float(target[2]))
+    """The board's plane as the support plane (:func:`pipeline.board.board_support`), its inliers the board's
+    corners; with no SfM points the object's height is the fallback there: twice the height of the point the
+    cameras aim at (an upper bound the masks and the hull refine)."""
+    plane = board_support(np.zeros((0, 3)), -np.einsum("nji,nj->ni", cams.R, cams.t), target)
+    return None if plane is None else replace(plane, inliers=cams.corners)
 
 
 def board_info(cams: BoardCameras, spec, n_photos: int, why_not_sfm: str) -> dict:

@@ -82,7 +82,10 @@ def ladder(start: str, stop: str, max_features: int = 8192) -> list[Rung]:
 
 
 # ----------------------------------------------------------------------------- one rung (child process)
-def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera_model: str) -> None:
+def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera_model: str,
+             per_image: bool = False) -> None:
+    """The rung's features into ``db``: one shared camera per group of images (a phone's portrait and landscape
+    shots: two), or ``per_image`` a camera each."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
@@ -91,9 +94,10 @@ def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera
     ext.sift.max_num_features = rung.max_features
     ext.sift.domain_size_pooling = rung.dsp
     ext.sift.estimate_affine_shape = rung.dsp
-    for names in groups:  # one shared camera per image size (a phone's portrait and landscape shots: two)
-        pycolmap.extract_features(db, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                                  reader_options=reader, extraction_options=ext)
+    mode = pycolmap.CameraMode.PER_IMAGE if per_image else pycolmap.CameraMode.SINGLE
+    for names in groups:
+        pycolmap.extract_features(db, images, image_names=names, camera_mode=mode, reader_options=reader,
+                                  extraction_options=ext)
 
 
 def _match(db: Path, n_images: int, rung: Rung, matching: str) -> None:
@@ -192,7 +196,7 @@ def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, came
     return rec, Path(info["database"]), info["seconds"], None
 
 
-# ----------------------------------------------------------------------------- judging a model
+# ----------------------------------------------------------------------------- given cameras
 def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, Rs: np.ndarray, ts: np.ndarray,
                    matching: str, max_features: int):
     """Sparse points of photos whose cameras are given (``images/<name>.png``; intrinsics for those pixels, world →
@@ -204,12 +208,7 @@ def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, R
     db = work / "given.db"
     db.unlink(missing_ok=True)
     rung = ladder("default", "default", max_features)[0]
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "PINHOLE"
-    ext = pycolmap.FeatureExtractionOptions()
-    ext.sift.max_num_features = rung.max_features
-    pycolmap.extract_features(db, images, image_names=[f"{n}.png" for n in names],
-                              camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader, extraction_options=ext)
+    _extract(db, images, [[f"{n}.png" for n in names]], rung, "PINHOLE", per_image=True)
     _match(db, len(names), rung, matching)
     rec = pycolmap.Reconstruction()
     database = pycolmap.Database.open(str(db))
@@ -231,6 +230,7 @@ def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, R
     return pycolmap.triangulate_points(rec, db, images, out)
 
 
+# ----------------------------------------------------------------------------- judging a model
 def model_stats(rec, names: list[str]) -> dict:
     """Registered photos, reprojection error, track length and the median number of points a view observes."""
     reg = [rec.image(i) for i in rec.reg_image_ids()]
