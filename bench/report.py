@@ -173,20 +173,26 @@ def findings(results: list[dict]) -> list[str]:
 
 
 def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
-    """The per-view appearance ablation: each scene without and with ``--train.appearance``."""
-    base = {r["scene"]: r for r in reconstructions(all_results) if "error" not in r and r["preset"] == "default"
-            and not r.get("knob") and r["scene"] in ("cow", "dtu") and r["cameras"] == ("gt" if r["scene"] == "cow"
-                                                                                      else "sfm")}
-    by = {(r["scene"], label(r)): r for r in rows}
-    pairs = [("the cow photographed with exposure ±25 %, white balance ±8 % and specular highlights",
-              by.get(("cow", "exposure+specular")), by.get(("cow", "exposure+specular, appearance"))),
-             ("the plain cow (one exposure, no highlights)", base.get("cow"), by.get(("cow", "appearance"))),
-             ("DTU scan24", base.get("dtu"), by.get(("dtu", "appearance")))]
+    """The ablations: per-view appearance (each scene without and with ``--train.appearance``) and the bake's
+    discrete view selection (without and with ``--texture.view-selection``)."""
+    base = {(r["scene"], r["cameras"]): r for r in reconstructions(all_results) if "error" not in r
+            and r["preset"] == "default" and not r.get("knob") and r["scene"] in ("cow", "dtu")}
+    by = {(r["scene"], r["cameras"], label(r)): r for r in rows}
+    appearance = "per-view appearance"
+    pairs = [(appearance, "the cow photographed with exposure ±25 %, white balance ±8 % and specular highlights",
+              by.get(("cow", "gt", "exposure+specular")), by.get(("cow", "gt", "exposure+specular, appearance"))),
+             (appearance, "the plain cow (one exposure, no highlights)", base.get(("cow", "gt")),
+              by.get(("cow", "gt", "appearance"))),
+             (appearance, "DTU scan24", base.get(("dtu", "sfm")), by.get(("dtu", "sfm", "appearance")))]
+    selection = "view selection in the bake"
+    pairs += [(selection, what, base.get(key), by.get((*key, "view selection")))
+              for what, key in (("the cow, GT cameras", ("cow", "gt")), ("the cow from photos", ("cow", "sfm")),
+                                ("DTU scan24", ("dtu", "sfm")))]
     out = []
-    for what, off, on in pairs:
+    for name, what, off, on in pairs:
         if off is None or on is None:
             continue
-        line = (f"- per-view appearance, {what}: held-out PSNR {off['psnr']:.2f} → {on['psnr']:.2f} dB "
+        line = (f"- {name}, {what}: held-out PSNR {off['psnr']:.2f} → {on['psnr']:.2f} dB "
                 f"({on['psnr'] - off['psnr']:+.2f}")
         if "psnr_gain_fit" in off and "psnr_gain_fit" in on:
             line += (f"; after fitting each held-out photo's own colour gains {off['psnr_gain_fit']:.2f} → "

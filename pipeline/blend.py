@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from typing import NamedTuple
 
 import cv2
@@ -16,6 +17,7 @@ import numpy as np
 
 from .cameras_config import TextureConfig
 from .seams import fit_seam_offsets, texel_offsets_planar
+from .view_select import chart_weights, face_adjacency, select_views
 
 
 def depth_edges(depth: np.ndarray, tol: float, px: int) -> np.ndarray:
@@ -151,6 +153,17 @@ class ViewSampler:
         grow = np.ones((3, 3), np.uint8)  # the edges one pixel wider: depth_edges(…, edge_px + 1)
         sharp = [sharpness_map(im, cv2.dilate(e.astype(np.uint8), grow) > 0) for im, e in zip(self.images, edges)]
         return edges, sharp
+
+    def at(self, pts: np.ndarray, nrm: np.ndarray, cfg: TextureConfig | None = None) -> "ViewSampler":
+        """The same views (photos, depth and sharpness maps) sampling other points ``pts`` with normals ``nrm``,
+        weighted by ``cfg`` (default: this sampler's)."""
+        out = object.__new__(ViewSampler)
+        out.__dict__.update(self.__dict__)
+        out.cfg = cfg or self.cfg
+        out.p3, out.n3 = np.array(pts.T, np.float32, order="C"), np.array(nrm.T, np.float32, order="C")
+        out.pts = out.p3.T
+        out.facing = out.n3[0] * out.p3[0] + out.n3[1] * out.p3[1] + out.n3[2] * out.p3[2]
+        return out
 
     def subset(self, sel) -> "ViewSampler":
         """The same views sampling only the texels ``sel`` (indices or a slice into this sampler's points)."""
@@ -294,13 +307,15 @@ class BlendAccumulator:
 
 
 class TexelSurface(NamedTuple):
-    """Where the texels lie on the mesh, for the seam levelling: the mesh vertex ids (M, 3) of each texel's face
-    and its barycentrics (M, 3); the mesh's faces (F, 3) over ``n_verts`` vertices (UV-seam copies merged)."""
+    """Where the texels lie on the mesh, for the seam levelling and the view selection: the mesh vertex ids (M, 3)
+    of each texel's face and its barycentrics (M, 3); the mesh's faces (F, 3) over ``n_verts`` vertices (UV-seam
+    copies merged); each texel's face (M,) (row of ``faces``)."""
 
     texel_vertices: np.ndarray
     texel_bary: np.ndarray
     faces: np.ndarray
     n_verts: int
+    texel_faces: np.ndarray | None = None
 
 
 BAKE_CHUNK = 1 << 16
@@ -311,10 +326,11 @@ BAKE_THREADS = min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffi
 
 
 def view_samples(sampler: ViewSampler, cfg: TextureConfig, offsets: np.ndarray | None = None,
-                 surface: TexelSurface | None = None) -> tuple[np.ndarray, ...]:
+                 surface: TexelSurface | None = None, charts: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """All views' samples (:meth:`ViewSampler.samples`), view after view: texel indices (k,), colours (k, 3) with each
     view's seam offsets added (``offsets`` (V, n_verts, 3) on ``surface``, whose texels are the sampler's), weights
-    (k,) × ``edge_weight`` on edge samples, tiers (k,)."""
+    (k,) × ``edge_weight`` on edge samples × the view's factor on the texel's face in ``charts`` (F, V) (the view
+    selection, :func:`view_charts`; needs ``surface.texel_faces``), tiers (k,)."""
     out = []
     if offsets is not None:  # channel-major: (V, 3, n_verts) offsets, (3, M) texel corners and barycentrics
         planes = offsets.transpose(0, 2, 1).copy()
@@ -325,6 +341,8 @@ def view_samples(sampler: ViewSampler, cfg: TextureConfig, offsets: np.ndarray |
         if offsets is not None:
             col = col + texel_offsets_planar(planes[i], corners.take(idx, 1), bary.take(idx, 1))
         weight = weight * np.where(tier > 0, np.float32(cfg.edge_weight), np.float32(1.0))
+        if charts is not None:
+            weight = weight * charts[:, i].take(surface.texel_faces.take(idx))
         out.append((idx, col, weight, tier))
     if not out:
         return np.zeros(0, np.intp), np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int8)
@@ -376,10 +394,54 @@ def fit_view_offsets(sampler: ViewSampler, surface: TexelSurface, cfg: TextureCo
                             cfg.seam_smoothness, cfg.seam_zero_pull)
 
 
+def face_view_scores(sampler: ViewSampler, surface: TexelSurface, cfg: TextureConfig) -> np.ndarray:
+    """The view selection's data term (F, V): each view's clean blending weight (:meth:`ViewSampler.samples`, with
+    the sharpness power ``selection_sharpness``) at the centre of each face's texels (their mean point and normal),
+    × its photo-consistency
+    (:func:`robust_weights`) against the face's robust colour over all views; 0 where the view does not see it."""
+    n_faces, n_views = len(surface.faces), len(sampler.images)
+    face = surface.texel_faces
+    count = np.bincount(face, minlength=n_faces).astype(np.float64)
+    has = np.flatnonzero(count > 0)
+    centre = np.stack([np.bincount(face, sampler.p3[j], n_faces) for j in range(3)], 1)[has] / count[has, None]
+    normal = np.stack([np.bincount(face, sampler.n3[j], n_faces) for j in range(3)], 1)[has]
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-12)
+    at = sampler.at(centre, normal, replace(cfg, sharpness_power=cfg.selection_sharpness))
+    with ThreadPoolExecutor(BAKE_THREADS) as pool:
+        per_view = list(pool.map(at.samples, range(n_views)))
+    scores = np.zeros((n_faces, n_views), np.float32)
+    stats = BlendAccumulator(len(has), extremes=cfg.outlier_threshold > 0)
+    for i, (idx, col, weight, tier) in enumerate(per_view):
+        clean = np.flatnonzero(tier == 0)
+        idx, col, weight = idx.take(clean), channel_rows(col, clean), weight.take(clean)
+        stats.add(idx, col, weight, np.zeros(len(idx), np.int8))
+        per_view[i] = (idx, col, weight)
+    reference = stats.reference(True) if cfg.outlier_threshold > 0 else None
+    for i, (idx, col, weight) in enumerate(per_view):
+        if reference is not None and len(idx):
+            weight = weight * robust_weights(col, channel_rows(reference, idx), stats.count.take(idx),
+                                             cfg.outlier_threshold, cfg.outlier_reject)
+        scores[has.take(idx), i] = weight
+    return scores
+
+
+def view_charts(sampler: ViewSampler, surface: TexelSurface, cfg: TextureConfig) -> np.ndarray:
+    """The view selection's factor (F, V) on each view's weights per face (:mod:`pipeline.view_select`): a view per
+    face from :func:`face_view_scores` under the Potts smoothness ``selection_smoothness``, blended over
+    ``selection_rings`` rings of faces at the charts' borders, the other views at ``selection_floor``."""
+    if surface.texel_faces is None or len(surface.texel_faces) != len(sampler.pts):
+        raise ValueError("view_charts: the surface must give each of the sampler's texels its face")
+    scores = face_view_scores(sampler, surface, cfg)
+    adjacency = face_adjacency(surface.faces)
+    labels = select_views(scores, adjacency, cfg.selection_smoothness)
+    return chart_weights(labels, len(sampler.images), adjacency, cfg.selection_rings, cfg.selection_floor)
+
+
 def _bake_texels(sampler: ViewSampler, cfg: TextureConfig, offsets: np.ndarray | None,
-                 surface: TexelSurface | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 surface: TexelSurface | None, charts: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`bake` of the sampler's texels, their views' samples drawn once for both passes."""
-    samples = view_samples(sampler, cfg, offsets, surface)
+    samples = view_samples(sampler, cfg, offsets, surface, charts)
     n, robust = len(sampler.pts), cfg.outlier_threshold > 0
     first = blend_views(samples, n, cfg, extremes=robust)
     col, wsum = first.blend(cfg.edge_fallback_only)
@@ -411,14 +473,17 @@ def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams, depth
     """
     sampler = ViewSampler(pts, nrm, images, cams, depths, cfg)
     offsets = fit_view_offsets(sampler, surface, cfg) if cfg.seam_levelling and surface is not None else None
+    select = cfg.view_selection and surface is not None and surface.texel_faces is not None
+    charts = view_charts(sampler, surface, cfg) if select else None
     n = len(sampler.pts)
     col, wsum, band = np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool)
 
     def bake_chunk(start: int) -> None:
         s = slice(start, start + BAKE_CHUNK)
-        part = None if surface is None else surface._replace(texel_vertices=surface.texel_vertices[s],
-                                                             texel_bary=surface.texel_bary[s])
-        col[s], wsum[s], band[s] = _bake_texels(sampler.subset(s), cfg, offsets, part)
+        part = None if surface is None else surface._replace(
+            texel_vertices=surface.texel_vertices[s], texel_bary=surface.texel_bary[s],
+            texel_faces=None if surface.texel_faces is None else surface.texel_faces[s])
+        col[s], wsum[s], band[s] = _bake_texels(sampler.subset(s), cfg, offsets, part, charts)
 
     with ThreadPoolExecutor(BAKE_THREADS) as pool:  # numpy releases the GIL in the chunks' array operations
         list(pool.map(bake_chunk, range(0, n, BAKE_CHUNK)))

@@ -159,6 +159,20 @@ class TextureConfig:
     sharpness_floor: float = 2.0
     """Contrast (grey levels of 1 per normalized unit) below which a view counts as flat: weak texture barely
     changes the weights."""
+    view_selection: bool = False
+    """Discrete view selection (:mod:`pipeline.view_select`): one photo per face, the sharpest, most frontal, closest
+    photo-consistent one, under a Potts smoothness so charts come from few views, blended with its neighbours' views
+    at chart borders; the other views keep ``selection_floor`` of their weight. Off: every view blends by weight."""
+    selection_smoothness: float = 1.0
+    """Potts weight: cost of a label change between two adjacent faces, in units of −log of the data term's ratio
+    to the face's best view (1: a view e times weaker is taken to spare one border edge)."""
+    selection_sharpness: float = 2.0
+    """Sharpness power of the selection's data term (as ``sharpness_power`` for the blend; the selection's choice
+    between two views rests on it). Needs ``sharpness_power`` > 0 (the sharpness maps)."""
+    selection_rings: int = 2
+    """Rings of neighbouring faces over which the views of two charts blend at their border (0: hard seams)."""
+    selection_floor: float = 0.02
+    """Weight factor of the views a face did not select (they colour texels the chosen view does not see)."""
     seam_levelling: bool = True
     """Global seam levelling: per view an RGB offset per mesh vertex, solved in least squares (scipy sparse) so that
     overlapping views agree, added to the view's samples before blending (exposure, white balance and lighting

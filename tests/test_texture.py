@@ -326,22 +326,36 @@ def test_no_background_in_silhouette_band():
     assert green[False].max() > 0.1  # what leaving out the silhouette pixels prevents
 
 
+def fine_pattern(p: np.ndarray) -> np.ndarray:
+    """A fine grey checker-like pattern on the z = 0 plane."""
+    return np.repeat((0.5 + 0.3 * np.sin(12 * p[:, :1]) * np.sin(12 * p[:, 1:2])), 3, 1)
+
+
+def sharp_and_blurred_views():
+    """Two equally placed views (96 px) of the finely patterned plane, the second defocused (σ = 2 px)."""
+    mesh = plane_mesh()
+    cams = make_cameras([(-0.5, 0.0, 2.2), (0.5, 0.0, 2.2)], (0, 0, 0), 60.0, 96, down=(0.0, -1.0, 0.0))
+    imgs = render_mesh(mesh, fine_pattern, cams, 96)
+    imgs[1] = cv2.GaussianBlur(imgs[1], (0, 0), 2.0)
+    return mesh, cams, imgs
+
+
+def inner_rms_error(mesh, imgs, cams, cfg) -> float:
+    """RMS error of the baked texture against :func:`fine_pattern` over the plane's inner |x|, |y| < 0.7."""
+    nv, nf, uvs, tex, _ = texture_mesh(mesh.vertices, mesh.faces, imgs, cams, cfg, None)
+    fid = rasterize_atlas(uvs, nf, tex.shape[0])
+    r, c, pts, _ = texel_geometry(fid, uvs, nf, nv, np.ones_like(nv))
+    inner = (np.abs(pts[:, :2]) < 0.7).all(1)
+    return float(np.sqrt(((tex[r, c] - fine_pattern(pts))[inner] ** 2).mean()))
+
+
 def test_blurred_view_loses_to_sharp_view():
     """Two equally placed views of a finely patterned plane, one defocused: with the sharpness term the texture
     follows the sharp view."""
-    mesh = plane_mesh()
-    fine = lambda p: np.repeat((0.5 + 0.3 * np.sin(12 * p[:, :1]) * np.sin(12 * p[:, 1:2])), 3, 1)  # noqa: E731
-    cams = make_cameras([(-0.5, 0.0, 2.2), (0.5, 0.0, 2.2)], (0, 0, 0), 60.0, 96, down=(0.0, -1.0, 0.0))
-    imgs = render_mesh(mesh, fine, cams, 96)
-    imgs[1] = cv2.GaussianBlur(imgs[1], (0, 0), 2.0)
-    err = {}
-    for power in (1.0, 0.0):
-        cfg = TextureConfig(**{**SYNTH, "sharpness_power": power}, seam_levelling=False, outlier_threshold=0.0)
-        nv, nf, uvs, tex, _ = texture_mesh(mesh.vertices, mesh.faces, imgs, cams, cfg, None)
-        fid = rasterize_atlas(uvs, nf, tex.shape[0])
-        r, c, pts, _ = texel_geometry(fid, uvs, nf, nv, np.ones_like(nv))
-        inner = (np.abs(pts[:, :2]) < 0.7).all(1)
-        err[power] = np.sqrt(((tex[r, c] - fine(pts))[inner] ** 2).mean())
+    mesh, cams, imgs = sharp_and_blurred_views()
+    err = {power: inner_rms_error(mesh, imgs, cams, TextureConfig(**{**SYNTH, "sharpness_power": power},
+                                                                  seam_levelling=False, outlier_threshold=0.0))
+           for power in (1.0, 0.0)}
     print("RMS error with / without the sharpness term", err)
     assert err[1.0] < 0.9 * err[0.0]  # modest by design: the sharp view weighs about twice the blurred one
 
