@@ -73,12 +73,13 @@ def select_views(scores: np.ndarray, adjacency: sp.csr_matrix, smoothness: float
 def _ring_mean(scores: np.ndarray, adjacency: sp.csr_matrix, rings: int) -> np.ndarray:
     """``scores`` (F, V) averaged ``rings`` times over each face and its neighbours, each view over the faces it sees
     (0 stays 0: a view that does not see a face is not made to)."""
-    seen = scores > 0
+    seen = (scores > 0).astype(np.float64)
     step = (adjacency + sp.identity(len(scores), np.float64, format="csr")).tocsr()
+    count = np.maximum(np.asarray(step @ seen), 1.0)
     out = scores.astype(np.float64)
     for _ in range(rings):
-        out = np.asarray(step @ out) / np.maximum(np.asarray(step @ (out > 0).astype(np.float64)), 1.0)
-    return np.where(seen, out, 0.0)
+        out = np.asarray(step @ (out * seen)) / count
+    return out * seen
 
 
 def chart_weights(labels: np.ndarray, n_views: int, adjacency: sp.csr_matrix, rings: int,
