@@ -10,7 +10,7 @@ from pipeline.config import Config, load_config
 from tests.conftest import ROOT
 
 
-@pytest.mark.parametrize("name", ["fast", "default", "quality"])
+@pytest.mark.parametrize("name", ["fast", "default", "balanced", "quality"])
 def test_presets_load(name):
     cfg = load_config(ROOT / "configs" / f"{name}.yaml")
     assert isinstance(cfg, Config) and cfg.train.iterations > 0
