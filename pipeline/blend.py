@@ -133,9 +133,7 @@ class ViewSampler:
             raise ValueError(f"ViewSampler: pts {pts.shape} and nrm {nrm.shape} must both have shape (M, 3)")
         if not (len(images) == len(depths) == len(cams)):
             raise ValueError(f"ViewSampler: {len(images)} images, {len(depths)} depth maps, {len(cams)} cameras")
-        self.p3, self.n3 = np.array(pts.T, np.float32, order="C"), np.array(nrm.T, np.float32, order="C")
-        self.pts = self.p3.T
-        self.facing = self.n3[0] * self.p3[0] + self.n3[1] * self.p3[1] + self.n3[2] * self.p3[2]  # n·p per texel
+        self._set_points(pts, nrm)
         self.images, self.cfg, self.full_depths = images, cfg, depths
         self.planes = [_planes(im) for im in images]
         self.depths = [without_silhouette(d, cfg.silhouette_px) for d in depths]
@@ -154,15 +152,19 @@ class ViewSampler:
         sharp = [sharpness_map(im, cv2.dilate(e.astype(np.uint8), grow) > 0) for im, e in zip(self.images, edges)]
         return edges, sharp
 
+    def _set_points(self, pts: np.ndarray, nrm: np.ndarray) -> None:
+        """The points (M, 3) and normals (M, 3) sampled, held channel by channel, and n·p per point."""
+        self.p3, self.n3 = np.array(pts.T, np.float32, order="C"), np.array(nrm.T, np.float32, order="C")
+        self.pts = self.p3.T
+        self.facing = self.n3[0] * self.p3[0] + self.n3[1] * self.p3[1] + self.n3[2] * self.p3[2]
+
     def at(self, pts: np.ndarray, nrm: np.ndarray, cfg: TextureConfig | None = None) -> "ViewSampler":
         """The same views (photos, depth and sharpness maps) sampling other points ``pts`` with normals ``nrm``,
         weighted by ``cfg`` (default: this sampler's)."""
         out = object.__new__(ViewSampler)
         out.__dict__.update(self.__dict__)
         out.cfg = cfg or self.cfg
-        out.p3, out.n3 = np.array(pts.T, np.float32, order="C"), np.array(nrm.T, np.float32, order="C")
-        out.pts = out.p3.T
-        out.facing = out.n3[0] * out.p3[0] + out.n3[1] * out.p3[1] + out.n3[2] * out.p3[2]
+        out._set_points(pts, nrm)
         return out
 
     def subset(self, sel) -> "ViewSampler":
@@ -363,6 +365,31 @@ def blend_views(samples: tuple[np.ndarray, ...], n: int, cfg: TextureConfig, ref
     return out
 
 
+def clean_samples(sampler: ViewSampler) -> tuple[np.ndarray, ...]:
+    """Every view's clean (tier 0) samples of the sampler's points, view after view (the views sampled on
+    :data:`BAKE_THREADS` threads): view ids (k,) int32, point indices (k,), colours (k, 3) (channels contiguous),
+    weights (k,)."""
+    with ThreadPoolExecutor(BAKE_THREADS) as pool:
+        per_view = list(pool.map(sampler.samples, range(len(sampler.images))))
+    views, texels, cols, weights = [], [], [], []
+    for i, (idx, col, weight, tier) in enumerate(per_view):
+        clean = np.flatnonzero(tier == 0)
+        views.append(np.full(len(clean), i, np.int32)), texels.append(idx.take(clean))
+        cols.append(col.T.take(clean, 1)), weights.append(weight.take(clean))
+    return np.concatenate(views), np.concatenate(texels), np.concatenate(cols, 1).T, np.concatenate(weights)
+
+
+def consistency(texel: np.ndarray, col: np.ndarray, weight: np.ndarray, n: int, cfg: TextureConfig) -> np.ndarray:
+    """Photo-consistency factor (k,) of samples of ``n`` points (:func:`clean_samples`): :func:`robust_weights`
+    against each point's per-channel trimmed mean over its samples; 1 with ``outlier_threshold`` 0."""
+    if cfg.outlier_threshold <= 0 or not len(texel):
+        return np.ones(len(texel), np.float32)
+    stats = BlendAccumulator(n, extremes=True)
+    stats.add(texel, col, weight, np.zeros(len(texel), np.int8))
+    return robust_weights(col, channel_rows(stats.reference(True), texel), stats.count.take(texel),
+                          cfg.outlier_threshold, cfg.outlier_reject)
+
+
 def fit_view_offsets(sampler: ViewSampler, surface: TexelSurface, cfg: TextureConfig) -> np.ndarray:
     """Seam-levelling offsets (V, n_verts, 3) (:func:`pipeline.seams.fit_seam_offsets`) fitted on at most
     ``seam_fit_texels`` texels drawn with a fixed seed; edge samples left out, outliers down-weighted against the
@@ -373,23 +400,9 @@ def fit_view_offsets(sampler: ViewSampler, surface: TexelSurface, cfg: TextureCo
     sel = np.arange(n)
     if n > cfg.seam_fit_texels:
         sel = np.sort(np.random.default_rng(0).choice(n, cfg.seam_fit_texels, replace=False))
-    sub = sampler.subset(sel)
-    stats = BlendAccumulator(len(sel), extremes=cfg.outlier_threshold > 0)
-    views, texels, cols, weights = [], [], [], []
-    with ThreadPoolExecutor(BAKE_THREADS) as pool:
-        per_view = list(pool.map(sub.samples, range(len(sampler.images))))
-    for i, (idx, col, weight, tier) in enumerate(per_view):
-        clean = np.flatnonzero(tier == 0)
-        views.append(np.full(len(clean), i, np.int32)), texels.append(idx.take(clean))
-        cols.append(col.T.take(clean, 1)), weights.append(weight.take(clean))
-    texel, col, weight = np.concatenate(texels), np.concatenate(cols, 1).T, np.concatenate(weights)
-    stats.add(texel, col, weight, np.zeros(len(texel), np.int8))
-    weight = weight.astype(np.float64)
-    if cfg.outlier_threshold > 0 and len(texel):
-        ref = stats.reference(True)
-        weight = weight * robust_weights(col, channel_rows(ref, texel), stats.count.take(texel),
-                                         cfg.outlier_threshold, cfg.outlier_reject)
-    return fit_seam_offsets(np.concatenate(views), texel, col, weight, surface.texel_vertices[sel],
+    view, texel, col, weight = clean_samples(sampler.subset(sel))
+    weight = weight.astype(np.float64) * consistency(texel, col, weight, len(sel), cfg)
+    return fit_seam_offsets(view, texel, col, weight, surface.texel_vertices[sel],
                             surface.texel_bary[sel], surface.faces, surface.n_verts, len(sampler.images),
                             cfg.seam_smoothness, cfg.seam_zero_pull)
 
@@ -397,8 +410,8 @@ def fit_view_offsets(sampler: ViewSampler, surface: TexelSurface, cfg: TextureCo
 def face_view_scores(sampler: ViewSampler, surface: TexelSurface, cfg: TextureConfig) -> np.ndarray:
     """The view selection's data term (F, V): each view's clean blending weight (:meth:`ViewSampler.samples`, with
     the sharpness power ``selection_sharpness``) at the centre of each face's texels (their mean point and normal),
-    × its photo-consistency
-    (:func:`robust_weights`) against the face's robust colour over all views; 0 where the view does not see it."""
+    × its photo-consistency (:func:`consistency`) against the face's robust colour over all views; 0 where the view
+    does not see it."""
     n_faces, n_views = len(surface.faces), len(sampler.images)
     face = surface.texel_faces
     count = np.bincount(face, minlength=n_faces).astype(np.float64)
@@ -406,22 +419,10 @@ def face_view_scores(sampler: ViewSampler, surface: TexelSurface, cfg: TextureCo
     centre = np.stack([np.bincount(face, sampler.p3[j], n_faces) for j in range(3)], 1)[has] / count[has, None]
     normal = np.stack([np.bincount(face, sampler.n3[j], n_faces) for j in range(3)], 1)[has]
     normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-12)
-    at = sampler.at(centre, normal, replace(cfg, sharpness_power=cfg.selection_sharpness))
-    with ThreadPoolExecutor(BAKE_THREADS) as pool:
-        per_view = list(pool.map(at.samples, range(n_views)))
+    view, face_at, col, weight = clean_samples(sampler.at(centre, normal,
+                                                           replace(cfg, sharpness_power=cfg.selection_sharpness)))
     scores = np.zeros((n_faces, n_views), np.float32)
-    stats = BlendAccumulator(len(has), extremes=cfg.outlier_threshold > 0)
-    for i, (idx, col, weight, tier) in enumerate(per_view):
-        clean = np.flatnonzero(tier == 0)
-        idx, col, weight = idx.take(clean), channel_rows(col, clean), weight.take(clean)
-        stats.add(idx, col, weight, np.zeros(len(idx), np.int8))
-        per_view[i] = (idx, col, weight)
-    reference = stats.reference(True) if cfg.outlier_threshold > 0 else None
-    for i, (idx, col, weight) in enumerate(per_view):
-        if reference is not None and len(idx):
-            weight = weight * robust_weights(col, channel_rows(reference, idx), stats.count.take(idx),
-                                             cfg.outlier_threshold, cfg.outlier_reject)
-        scores[has.take(idx), i] = weight
+    scores[has.take(face_at), view] = weight * consistency(face_at, col, weight, len(has), cfg)
     return scores
 
 

@@ -233,7 +233,8 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
         fid = rasterize_atlas(uvs, nf, side)
         r, c, pts, nrm, face, bary = texel_geometry(fid, uvs, nf, nv, normals, with_bary=True)
         deps = deps.result()
-    surface = TexelSurface(vmap[nf[face]], bary, np.asarray(faces), len(verts_n), face)  # offsets on the original vertices
+    # the seam offsets live on the original vertices; xatlas keeps the faces' order, so ``face`` is a row of faces
+    surface = TexelSurface(vmap[nf[face]], bary, np.asarray(faces), len(verts_n), face)
     col, wsum, band_only = bake(pts, nrm, images, cams, deps, cfg, surface)
     unseen = wsum <= 0
     fallback = unseen | band_only  # a colour only the silhouette band gives may be background: not trusted

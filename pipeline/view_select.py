@@ -22,12 +22,12 @@ import scipy.sparse as sp
 import trimesh
 
 
-def face_adjacency(faces: np.ndarray, n_faces: int | None = None) -> sp.csr_matrix:
+def face_adjacency(faces: np.ndarray) -> sp.csr_matrix:
     """Symmetric (F, F) 0/1 matrix of faces sharing an edge (trimesh's ``face_adjacency``)."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"face_adjacency: faces must have shape (F, 3), got {faces.shape}")
-    n = len(faces) if n_faces is None else n_faces
+    n = len(faces)
     pairs = trimesh.graph.face_adjacency(faces) if len(faces) else np.zeros((0, 2), np.int64)
     a, b = pairs[:, 0], pairs[:, 1]
     data = np.ones(2 * len(pairs), np.float32)
@@ -50,7 +50,7 @@ def select_views(scores: np.ndarray, adjacency: sp.csr_matrix, smoothness: float
         raise ValueError(f"select_views: smoothness must be >= 0, got {smoothness}")
     n, v = scores.shape
     scores = _ring_mean(scores, adjacency, data_rings)
-    best = scores.max(1, initial=0.0) if v else np.zeros(n)
+    best = scores.max(1, initial=0.0)
     seen = best > 0
     with np.errstate(divide="ignore"):
         cost = np.where(scores > 0, -np.log(scores / np.where(seen, best, 1.0)[:, None]), np.inf)
