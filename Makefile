@@ -2,13 +2,14 @@
 PY      ?= .venv/bin/python
 IMAGES  ?=
 MASKS   ?=
+CAMERAS ?=
 CONFIG  ?= configs/default.yaml
 OUT     ?=
 WS      ?= $(OUT)
 FORCE   ?=
 ARGS    ?=
 
-.PHONY: setup setup-web test test-fast board synth cameras masks depth train mesh texture report bench-core bench bench-quick reconstruct
+.PHONY: setup setup-web lint test test-fast board synth print-stages $(STAGES) bench-core bench bench-quick reconstruct
 
 # everything: the Python environment, and the report's 3-D viewer (model-viewer) where npm exists
 setup: .venv/.installed
@@ -29,7 +30,11 @@ node_modules/.installed: package.json
 	npm install --no-audit --no-fund
 	touch $@
 
-test: setup
+# lint (ruff: pyflakes, pycodestyle, import order, bugbear; pyproject.toml) then every test
+lint: setup
+	$(PY) -m ruff check .
+
+test: lint
 	$(PY) -m pytest -q
 
 test-fast: setup
@@ -45,26 +50,14 @@ SCENE ?= configs/scenes/torus.yaml
 synth: setup
 	$(PY) -m pipeline synth "$(SCENE)" "$(OUT)"
 
-cameras: setup
-	$(PY) -m pipeline cameras "$(WS)" --images "$(IMAGES)" --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
-
-masks: setup
-	$(PY) -m pipeline masks "$(WS)" $(if $(MASKS),--masks "$(MASKS)") --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
-
-depth: setup
-	$(PY) -m pipeline depth "$(WS)" --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
-
-train: setup
-	$(PY) -m pipeline train "$(WS)" --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
-
-mesh: setup
-	$(PY) -m pipeline mesh "$(WS)" --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
-
-texture: setup
-	$(PY) -m pipeline texture "$(WS)" --config "$(CONFIG)" $(if $(FORCE),--force) $(ARGS)
-
-report: setup
-	$(PY) -m pipeline report "$(WS)"
+# one target per stage of the stage table (pipeline/stages.py): make <stage> WS=workspace [CONFIG=…] [FORCE=1] [ARGS=…]
+STAGES := $(shell sed -n 's/^    Stage."\([a-z_]*\)".*/\1/p' pipeline/stages.py)
+print-stages:
+	@echo $(STAGES)
+$(STAGES): setup
+	$(PY) -m pipeline $@ "$(WS)" --config "$(CONFIG)" $(if $(FORCE),--force) \
+	  $(if $(filter cameras,$@),$(if $(IMAGES),--images "$(IMAGES)") $(if $(CAMERAS),--given-cameras "$(CAMERAS)")) \
+	  $(if $(filter masks,$@),$(if $(MASKS),--masks-dir "$(MASKS)")) $(ARGS)
 
 bench-core: setup
 	$(PY) bench/core.py
@@ -78,17 +71,10 @@ bench-quick: setup
 # every stage in order; each is skipped when up to date, and a killed run resumes where it stopped.
 # Paths may hold spaces (IMAGES="photos of my vase"): they are quoted, and the default OUT is work/<folder name>.
 reconstruct: setup
-	@images="$(IMAGES)"; out="$(OUT)"; masks="$(MASKS)"; \
+	@images="$(IMAGES)"; out="$(OUT)"; \
 	if [ -z "$$out" ] && [ -n "$$images" ]; then out="work/$$(basename "$$images")"; fi; \
 	if [ -z "$$out" ] || { [ -z "$$images" ] && [ ! -f "$$out/cameras.npz" ]; }; then \
-	  echo "usage: make reconstruct IMAGES=photos [MASKS=dir] [OUT=workspace] [CONFIG=file]"; exit 2; fi; \
-	set -e; \
-	if [ -n "$$images" ]; then $(PY) -m pipeline cameras "$$out" --images "$$images" --config "$(CONFIG)"; fi; \
-	if [ -n "$$masks" ]; then $(PY) -m pipeline masks "$$out" --masks "$$masks" --config "$(CONFIG)"; \
-	elif [ -n "$$images" ]; then $(PY) -m pipeline masks "$$out" --config "$(CONFIG)"; fi; \
-	if [ -n "$$images" ]; then $(PY) -m pipeline depth "$$out" --config "$(CONFIG)"; fi; \
-	$(PY) -m pipeline train "$$out" --config "$(CONFIG)"; \
-	$(PY) -m pipeline mesh "$$out" --config "$(CONFIG)"; \
-	$(PY) -m pipeline texture "$$out" --config "$(CONFIG)"; \
-	$(PY) -m pipeline report "$$out"; \
-	echo "done: $$out/mesh/textured.glb  report: $$out/report.html"
+	  echo "usage: make reconstruct IMAGES=photos [MASKS=dir] [CAMERAS=cameras.npz] [OUT=workspace] [CONFIG=file]"; \
+	  exit 2; fi; \
+	$(PY) -m pipeline reconstruct "$$out" --config "$(CONFIG)" $(if $(IMAGES),--images "$(IMAGES)") \
+	  $(if $(MASKS),--masks-dir "$(MASKS)") $(if $(CAMERAS),--given-cameras "$(CAMERAS)") $(if $(FORCE),--force) $(ARGS)

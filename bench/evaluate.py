@@ -57,16 +57,22 @@ def scene(name: str, over: dict) -> Path:
     return out
 
 
-def cli(args: list[str]) -> None:
-    from pipeline.cli import main
+def config(preset: str | None, options: list[str] = ()):
+    """configs/<preset>.yaml (the defaults for None) with ``options`` in the CLI's spelling on top, progress bars
+    off: what ``python -m pipeline <stage> --config … <options>`` runs with."""
+    from pipeline.config import config_from_args
 
-    if main(args) != 0:
-        raise RuntimeError(f"stage failed: {' '.join(args[:2])}")
+    cfg = config_from_args(ROOT / "configs" / f"{preset}.yaml" if preset else None, options)
+    cfg.train.progress = False
+    return cfg
 
 
-def _pairs(ov: list[str], prefix: str) -> list[str]:
-    """The (option, value) pairs of ``ov`` whose option starts with ``prefix``."""
-    return [x for i in range(0, len(ov), 2) if ov[i].startswith(prefix) for x in ov[i : i + 2]]
+def stages(names: tuple[str, ...], ws: Path, cfg, **sources) -> None:
+    """Run the named stages through the pipeline API (each skipped when up to date)."""
+    from pipeline.stages import run_stage
+
+    for name in names:
+        run_stage(name, ws, cfg, **(sources if name == "cameras" else {}))
 
 
 def textured(ws: Path):
@@ -77,9 +83,9 @@ def textured(ws: Path):
     return tm, np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
 
 
-def sfm_centres(c) -> np.ndarray:
-    """Camera centres of a Cameras in its SfM frame."""
-    return c.centers @ c.scale_mat[:3, :3].T + c.scale_mat[:3, 3]
+def dtu_heldout(n: int) -> list[int]:
+    """The DTU views held out of training (every 7th of the ``n`` registered ones, sorted order)."""
+    return [i for i in range(n) if i % 7 == 0]
 
 
 def photos_folder(syn: Path, out: Path) -> Path:
@@ -131,15 +137,14 @@ def _read_rgb(path: Path) -> np.ndarray:
 
 
 def _read_mask(path: Path) -> np.ndarray:
-    import cv2
+    from dvr.data import read_mask
 
-    return cv2.imread(str(path), 0) > 127
+    return read_mask(path) > 0
 
 
-def train_mesh_texture(ws: Path, cfg: list[str], cli_over: list[str]) -> None:
-    cli(["train", str(ws), *cfg, "--train.no-progress", *_pairs(cli_over, "--train")])
-    cli(["mesh", str(ws), *cfg, *_pairs(cli_over, "--mesh")])
-    cli(["texture", str(ws), *cfg, *_pairs(cli_over, "--texture")])
+def train_mesh_texture(ws: Path, preset: str, options: list[str]) -> None:
+    """Stages train, mesh and texture with the preset and the knob's options."""
+    stages(("train", "mesh", "texture"), ws, config(preset, options))
 
 
 def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
@@ -152,38 +157,35 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
 
     cli_over, over = knobs.get(spec.get("knob"), ([], {}))
     syn = scene(spec["scene"], over)
-    cfg = ["--config", str(ROOT / "configs" / f"{spec['preset']}.yaml")]
     gtc, hc = load_cameras(syn / "cameras.npz"), load_cameras(syn / "gt" / "heldout" / "cameras.npz")
     held = sorted((syn / "gt" / "heldout" / "images").glob("*.png"))
     extra: dict = {}
     if spec["cameras"] == "gt":
         ws = work / "ws"
         shutil.copytree(syn, ws, ignore=shutil.ignore_patterns("gt", "depth"))
-        train_mesh_texture(ws, cfg, cli_over)
+        train_mesh_texture(ws, spec["preset"], cli_over)
         secs = Workspace(ws).seconds()
         s, R, t = 1.0, np.eye(3), np.zeros(3)
         tm, tex = textured(ws)
-        psnr = [render_psnr(tm, tex, hc.K[i], hc.R[i], sfm_centres(hc)[i], _read_rgb(p),
+        psnr = [render_psnr(tm, tex, hc.K[i], hc.R[i], hc.sfm_centers[i], _read_rgb(p),
                             _read_mask(syn / "gt" / "heldout" / "masks" / p.name)) for i, p in enumerate(held)]
         extra["psnr_gain_fit"] = float(np.mean([
-            render_psnr(tm, tex, hc.K[i], hc.R[i], sfm_centres(hc)[i], _read_rgb(p),
+            render_psnr(tm, tex, hc.K[i], hc.R[i], hc.sfm_centers[i], _read_rgb(p),
                         _read_mask(syn / "gt" / "heldout" / "masks" / p.name), gain_fit=True)
             for i, p in enumerate(held)]))
     else:
         full = work / "all"
-        cli(["cameras", str(full), "--images", str(photos_folder(syn, work / "photos")), *cfg])
-        cli(["masks", str(full), *cfg])
-        cli(["depth", str(full), *cfg])
+        stages(("cameras", "masks", "depth"), full, config(spec["preset"]), images=photos_folder(syn, work / "photos"))
         from dvr.data import list_images
 
         names = [p.stem for p in list_images(full / "images")]
         gt_of = {**{f"{i:06d}": (gtc, i) for i in range(len(gtc))},
                  **{f"{HELDOUT}{i:06d}": (hc, i) for i in range(len(hc))}}
         est = load_cameras(full / "cameras.npz")
-        gt_c = np.stack([sfm_centres(gt_of[n][0])[gt_of[n][1]] for n in names])
+        gt_c = np.stack([gt_of[n][0].sfm_centers[gt_of[n][1]] for n in names])
         gt_R = np.stack([gt_of[n][0].R[gt_of[n][1]] for n in names])
-        s, R, t = umeyama(gt_c, sfm_centres(est))  # GT world → SfM frame
-        extra["pose"] = pose_errors(sfm_centres(est), est.R, gt_c, gt_R)
+        s, R, t = umeyama(gt_c, est.sfm_centers)  # GT world → SfM frame
+        extra["pose"] = pose_errors(est.sfm_centers, est.R, gt_c, gt_R)
         extra["registered"] = f"{len(names)}/{len(gt_of)}"
         gt_masks = {**{f"{i:06d}": syn / "gt" / "masks" / f"{i:06d}.png" for i in range(len(gtc))},
                     **{f"{HELDOUT}{i:06d}": syn / "gt" / "heldout" / "masks" / f"{i:06d}.png" for i in range(len(hc))}}
@@ -192,7 +194,7 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
         extra["rung"] = (Workspace(full).stamp("cameras") or {}).get("rung")
         ws = work / "ws"
         subset_workspace(full, ws, [k for k, n in enumerate(names) if not n.startswith(HELDOUT)])
-        train_mesh_texture(ws, cfg, cli_over)
+        train_mesh_texture(ws, spec["preset"], cli_over)
         secs = {**Workspace(full).seconds(), **Workspace(ws).seconds()}
         tm, tex = textured(ws)
         psnr, psnr_gt = [], []
@@ -200,8 +202,8 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
             k = names.index(f"{HELDOUT}{p.stem}") if f"{HELDOUT}{p.stem}" in names else None
             photo, gm = _read_rgb(p), _read_mask(syn / "gt" / "heldout" / "masks" / p.name)
             if k is not None:  # at the pose SfM gave the held-out photo
-                psnr.append(render_psnr(tm, tex, est.K[k], est.R[k], sfm_centres(est)[k], photo, gm))
-            psnr_gt.append(render_psnr(tm, tex, est.K.mean(0), hc.R[i] @ R.T, s * R @ sfm_centres(hc)[i] + t,
+                psnr.append(render_psnr(tm, tex, est.K[k], est.R[k], est.sfm_centers[k], photo, gm))
+            psnr_gt.append(render_psnr(tm, tex, est.K.mean(0), hc.R[i] @ R.T, s * R @ hc.sfm_centers[i] + t,
                                        photo, gm))
         extra["psnr_gt_pose"] = float(np.mean(psnr_gt))
         extra["heldout_registered"] = f"{len(psnr)}/{len(held)}"
@@ -223,9 +225,15 @@ def run_cameras(spec: dict, work: Path, conditions: dict) -> dict:
     syn = scene(name, over)
     photos = prepare(syn, work / "photos") if prepare else syn / "images"
     ws = work / "ws"
-    from pipeline.cli import main
+    from pipeline.stages import run_stage
+    from pipeline.workspace import StageError
 
-    rc = main(["cameras", str(ws), "--images", str(photos)])
+    try:
+        run_stage("cameras", ws, images=photos)
+        rc = 0
+    except StageError as exc:  # the one-line error a user would see
+        print(f"error: {exc}")
+        rc = 2
     stamp = Workspace(ws).stamp("cameras") or {}
     gtc = load_cameras(syn / "cameras.npz")
     out = {"seconds": {"cameras": Workspace(ws).seconds().get("cameras", 0.0)}, "rung": stamp.get("rung"),
@@ -246,7 +254,7 @@ def run_cameras(spec: dict, work: Path, conditions: dict) -> dict:
         idx = [int(s) for s in stems]
         gt_R = gtc.R[idx]
     out["registered"] = f"{len(idx)}/{len(gtc)}"
-    out["pose"] = pose_errors(sfm_centres(est), est.R, sfm_centres(gtc)[idx], gt_R)
+    out["pose"] = pose_errors(est.sfm_centers, est.R, gtc.sfm_centers[idx], gt_R)
     if (syn / "gt" / "board.json").exists() and (ws / "board.json").exists():
         out["metric"] = metric_error(est, gtc, idx, json.loads((syn / "gt" / "board.json").read_text()))
     return out
@@ -255,12 +263,13 @@ def run_cameras(spec: dict, work: Path, conditions: dict) -> dict:
 def metric_error(est, gtc, idx: list[int], gt_board: dict) -> dict:
     """A printed board put the cameras in metres in the board's frame: their centres against the true ones in that
     frame, without any alignment (mm), and the scale of the similarity between the two (1: metric scale exact)."""
+    from dvr.cameras import transform_points
     from dvr.metrics import umeyama
 
     T = np.asarray(gt_board["world_to_board"])
-    gt = sfm_centres(gtc)[idx] @ T[:3, :3].T + T[:3, 3]
-    err = np.linalg.norm(sfm_centres(est) - gt, axis=1)
-    s, _, _ = umeyama(gt, sfm_centres(est))
+    gt = transform_points(T, gtc.sfm_centers[idx])
+    err = np.linalg.norm(est.sfm_centers - gt, axis=1)
+    s, _, _ = umeyama(gt, est.sfm_centers)
     return {"centre_err_mm_mean": float(1000 * err.mean()), "centre_err_mm_max": float(1000 * err.max()),
             "scale": float(s)}
 
@@ -276,20 +285,17 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     full = RUNS / "dtu_all"
     if not (full / ".stages" / "depth.json").exists():
         shutil.rmtree(full, ignore_errors=True)
-        cli(["cameras", str(full), "--images", str(DTU / "images")])
-        cli(["masks", str(full)])
-        cli(["depth", str(full)])
+        stages(("cameras", "masks", "depth"), full, config(None), images=DTU / "images")
     cams = load_cameras(full / "cameras.npz")
     paths = list_images(full / "images")
     names = [p.stem for p in paths]
     _, Rg, Cg, _ = dtu_reference(DTU)
     idx = [int(n) for n in names]  # registered photos (all 49 when SfM registers them all)
-    pose = pose_errors(sfm_centres(cams), cams.R, Cg[idx], Rg[idx])
-    held = [i for i in range(len(names)) if i % 7 == 0]
+    pose = pose_errors(cams.sfm_centers, cams.R, Cg[idx], Rg[idx])
+    held = dtu_heldout(len(names))
     ws = work / "ws"
-    subset_workspace(full, ws, [i for i in range(len(names)) if i % 7 != 0])
-    cfg = ["--config", str(ROOT / "configs" / f"{spec['preset']}.yaml")]
-    train_mesh_texture(ws, cfg, (knobs or {}).get(spec.get("knob"), ([], {}))[0])
+    subset_workspace(full, ws, [i for i in range(len(names)) if i not in held])
+    train_mesh_texture(ws, spec["preset"], (knobs or {}).get(spec.get("knob"), ([], {}))[0])
     tm, tex = textured(ws)
     from dvr.metrics import masked_psnr
     from pipeline.texture import render_textured
@@ -299,7 +305,7 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
         photo = _read_rgb(paths[i])
         h, w = photo.shape[:2]
         img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, cams.K[i], cams.R[i],
-                                   sfm_centres(cams)[i], w, h)
+                                   cams.sfm_centers[i], w, h)
         mask = _read_mask(full / "masks" / f"{names[i]}.png")
         if i not in held:  # the textured mesh at the photos it was made from
             psnr_train.append(masked_psnr(img, photo, mask | hit))

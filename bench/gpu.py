@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -29,7 +28,7 @@ SCENES = ("cow", "dtu")
 
 def prepare(out: Path) -> None:
     """The workspaces ``bench/run.py`` trains on: the cow with GT cameras, DTU without every 7th photo."""
-    from bench.evaluate import RUNS, scene, subset_workspace
+    from bench.evaluate import RUNS, dtu_heldout, scene, subset_workspace
     from dvr.data import list_images
 
     shutil.copytree(scene("cow", {}), out / "cow", ignore=shutil.ignore_patterns("gt", "depth"))
@@ -37,12 +36,15 @@ def prepare(out: Path) -> None:
     if not (full / ".stages" / "depth.json").exists():
         sys.exit(f"{full}: missing; run `python bench/run.py` once (its DTU row) to build it")
     n = len(list_images(full / "images"))
-    subset_workspace(full, out / "dtu", [i for i in range(n) if i % 7 != 0])
+    held = dtu_heldout(n)
+    subset_workspace(full, out / "dtu", [i for i in range(n) if i not in held])
 
 
 def train(out: Path, runs: list[str]) -> None:
     """Train each ``scene:preset`` on the device ``auto`` picks; seconds into ``out/gpu.json``."""
     import torch
+
+    from bench.evaluate import config, stages
 
     rec = {"device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu", "runs": []}
     for name, preset in (r.split(":") for r in runs):
@@ -51,8 +53,7 @@ def train(out: Path, runs: list[str]) -> None:
         ws = out / "runs" / f"{name}_{preset}"
         shutil.rmtree(ws, ignore_errors=True)
         shutil.copytree(out / name, ws)
-        subprocess.run([sys.executable, "-m", "pipeline", "train", str(ws), "--config",
-                        str(ROOT / "configs" / f"{preset}.yaml"), "--train.no-progress"], cwd=ROOT, check=True)
+        stages(("train",), ws, config(preset))
         secs = json.loads((ws / ".stages" / "train.json").read_text())["seconds"]
         rec["runs"].append({"scene": name, "preset": preset, "train_seconds": secs})
         print(f"{name} {preset}: train {secs:.1f} s on {rec['device']}", flush=True)
@@ -61,7 +62,7 @@ def train(out: Path, runs: list[str]) -> None:
 
 def evaluate(out: Path) -> None:
     """Mesh and texture here for each trained workspace, then held-out PSNR (bench/evaluate.py's protocol)."""
-    from bench.evaluate import RUNS, _read_mask, _read_rgb, render_psnr, sfm_centres, textured
+    from bench.evaluate import RUNS, _read_mask, _read_rgb, config, dtu_heldout, render_psnr, stages, textured
     from dvr.cameras import load_cameras
     from dvr.data import list_images
 
@@ -69,9 +70,7 @@ def evaluate(out: Path) -> None:
     for run in rec["runs"]:
         ws = out / "runs" / f"{run['scene']}_{run['preset']}"
         shutil.copytree(out / run["scene"], ws, dirs_exist_ok=True)  # only the model came back from the GPU
-        for stage in ("mesh", "texture"):
-            subprocess.run([sys.executable, "-m", "pipeline", stage, str(ws), "--config",
-                            str(ROOT / "configs" / f"{run['preset']}.yaml")], cwd=ROOT, check=True)
+        stages(("mesh", "texture"), ws, config(run["preset"]))
         tm, tex = textured(ws)
         if run["scene"] == "cow":
             syn = RUNS / "scenes" / "cow"
@@ -81,8 +80,8 @@ def evaluate(out: Path) -> None:
         else:
             full = RUNS / "dtu_all"
             cams, photos = load_cameras(full / "cameras.npz"), list_images(full / "images")
-            views = [(i, p, full / "masks" / f"{p.stem}.png") for i, p in enumerate(photos) if i % 7 == 0]
-        run["psnr"] = float(np.mean([render_psnr(tm, tex, cams.K[i], cams.R[i], sfm_centres(cams)[i], _read_rgb(p),
+            views = [(i, photos[i], full / "masks" / f"{photos[i].stem}.png") for i in dtu_heldout(len(photos))]
+        run["psnr"] = float(np.mean([render_psnr(tm, tex, cams.K[i], cams.R[i], cams.sfm_centers[i], _read_rgb(p),
                                                  _read_mask(m)) for i, p, m in views]))
         print(f"{run['scene']} {run['preset']}: train {run['train_seconds']:.1f} s on {rec['device']}, "
               f"held-out PSNR {run['psnr']:.2f} dB")
@@ -133,5 +132,6 @@ if __name__ == "__main__":
     if len(sys.argv) < 3 or sys.argv[1] not in ("prepare", "train", "evaluate", "profile"):
         sys.exit(__doc__)
     step, folder = sys.argv[1], Path(sys.argv[2])
-    {"prepare": lambda: prepare(folder), "train": lambda: train(folder, sys.argv[3:] or ["cow:default", "cow:quality", "dtu:default"]),
+    default_runs = ["cow:default", "cow:quality", "dtu:default"]
+    {"prepare": lambda: prepare(folder), "train": lambda: train(folder, sys.argv[3:] or default_runs),
      "evaluate": lambda: evaluate(folder), "profile": lambda: profile(folder)}[step]()

@@ -61,7 +61,8 @@ def plot(results: list[dict], out: Path, mach: dict) -> None:
                     a.set_yscale("log")
     ax[0].legend(fontsize=6)
     fig.suptitle(f"accuracy against time (★ Pareto front of time, Chamfer and PSNR, per scene and cameras) — "
-                 f"{mach.get('model')}, {mach.get('torch_threads')} threads{', ' + mach['gpu'] if 'gpu' in mach else ''}",
+                 f"{mach.get('model')}, {mach.get('torch_threads')} threads"
+                 f"{', ' + mach['gpu'] if 'gpu' in mach else ''}",
                  fontsize=9)
     fig.tight_layout()
     fig.savefig(out, dpi=110)
@@ -113,7 +114,8 @@ def cameras_table(results: list[dict]) -> str:
     rows = [r for r in results if r.get("kind") == "cameras"]
     if not rows:
         return ""
-    lines = ["| capture condition | rung | registered | pose err (centre % of orbit / rot °) | seconds | support plane |",
+    lines = ["| capture condition | rung | registered | pose err (centre % of orbit / rot °) | seconds "
+             "| support plane |",
              "|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:

@@ -10,7 +10,7 @@ kept as the one floating scene. Each runs with the GT cameras and masks (four pr
 automatic masks, default preset; see bench/evaluate.py for the held-out protocol). A knob sweep around the default
 preset runs on the cow with GT cameras; DTU scan24 (49 real photos) runs photos only.
 
-Every run is its own process (peak memory = its max RSS) and goes through the same CLI a user runs. Per run:
+Every run is its own process (peak memory = its max RSS) and calls the stage API the CLI calls. Per run:
 seconds per stage, mask IoU (photos only), Chamfer and F-score@1 % of the GT bounding-box diagonal, held-out PSNR,
 pose error, peak RSS. Scenes are rendered once and cached in bench/runs/ (ignored by git).
 

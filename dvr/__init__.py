@@ -1,7 +1,8 @@
 """DVR: Differentiable Volumetric Rendering (Niemeyer et al., CVPR 2020) on CPU and CUDA.
 
-Modules: ``cameras`` (rays, unit-sphere bounds), ``fields`` (occupancy + texture fields),
-``march`` (surface finding without autograd), ``implicit`` (the exact implicit depth gradient),
+Modules: ``cameras`` (rays, unit-sphere bounds), ``fields`` (occupancy + texture fields behind the ``Field``
+interface, chunked evaluation), ``march`` (surface finding without autograd), ``implicit`` (the exact implicit
+depth gradient),
 ``losses``, ``hull`` (visual hull from masks), ``data`` (workspace loading, ray sampling),
 ``trainer``, ``extract`` (hierarchical marching cubes), ``metrics``.
 This package never imports ``pipeline``.

@@ -1,6 +1,6 @@
 """Cameras and rays.
 
-Convention (see DESIGN.md): ``cameras.npz`` holds per view ``world_mat_i`` = K·[R|t] (world → pixels, SfM
+Convention (docs/design.md, Conventions): ``cameras.npz`` holds per view ``world_mat_i`` = K·[R|t] (world → pixels, SfM
 frame) and one ``scale_mat`` mapping the normalized frame (object inside the unit sphere) to the SfM frame.
 Pixel (row i, column j) has its centre at continuous coordinates (j + 0.5, i + 0.5): the COLMAP convention,
 and the one ``grid_sample(..., align_corners=False)`` uses, so colours looked up at projected points agree
@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from kornia.geometry import create_meshgrid
+from kornia.geometry.conversions import convert_points_to_homogeneous
 
 
 @dataclass
@@ -41,7 +43,13 @@ class Cameras:
         Rt = np.concatenate([self.R, self.t[:, :, None]], axis=2)
         return self.K @ Rt
 
+    @property
+    def sfm_centers(self) -> np.ndarray:
+        """Camera centres in the SfM frame (that of ``cameras.npz``), (N, 3)."""
+        return to_sfm(self.centers, self.scale_mat)
+
     def subset(self, idx) -> "Cameras":
+        """The cameras ``idx`` (indices, a slice or a mask), same frame and support plane."""
         return Cameras(self.K[idx], self.R[idx], self.t[idx], self.scale_mat, self.ground)
 
     def reframe(self, center: np.ndarray, radius: float) -> "Cameras":
@@ -66,6 +74,43 @@ def plane_height(plane: np.ndarray, points):
     """Signed height above a plane (4,) with unit normal of points (..., 3), numpy or torch."""
     return points[..., 0] * float(plane[0]) + points[..., 1] * float(plane[1]) + points[..., 2] * float(plane[2]) \
         + float(plane[3])
+
+
+def in_contact_band(height, band: float):
+    """True where a height above the support plane (:func:`plane_height`; numpy or torch) lies in the contact band
+    ``0 ≤ h < band``, where the object meets its support."""
+    return (height >= 0) & (height < band)
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (..., 3) mapped by a 4×4 affine map ``T``: ``points @ T[:3, :3].T + T[:3, 3]``."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def to_sfm(points: np.ndarray, scale_mat: np.ndarray) -> np.ndarray:
+    """Normalized-frame points (..., 3) in the SfM frame: ``x @ S[:3, :3].T + S[:3, 3]`` (``scale_mat`` S: normalized →
+    SfM)."""
+    return transform_points(scale_mat, points)
+
+
+def to_normalized(points: np.ndarray, scale_mat: np.ndarray, uniform: bool = False) -> np.ndarray:
+    """SfM-frame points (..., 3) in the normalized frame: ``(x − S[:3, 3]) @ inv(S[:3, :3]).T``. ``uniform``: divide by
+    ``S[0, 0]`` instead, for a ``scale_mat`` without rotation (a sphere's, :func:`sphere_frame`); the two differ in the
+    last bits."""
+    if uniform:
+        return (points - scale_mat[:3, 3]) / scale_mat[0, 0]
+    return (points - scale_mat[:3, 3]) @ np.linalg.inv(scale_mat[:3, :3]).T
+
+
+def project_points(P: np.ndarray, points: np.ndarray, blas: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """numpy :func:`project`: points (M, 3) through a projection P (3, 4) or projections (N, 3, 4): pixel coordinates
+    (M, 2) or (N, M, 2) and depths z (M,) or (N, M); a |z| below 1e-12 divides as 1e-12 (test z > 0 for the points
+    in front). ``blas=False``: the products summed by numpy's einsum loop instead of BLAS (the last bits differ: a
+    point on an image border may fall on the other side)."""
+    ph = np.concatenate([points, np.ones((len(points), 1))], 1)
+    x = ph @ np.swapaxes(P, -1, -2) if blas else np.einsum("...ij,mj->...mi", P, ph)
+    z = x[..., 2]
+    return x[..., :2] / np.where(np.abs(z) < 1e-12, 1e-12, z)[..., None], z
 
 
 def sphere_frame(center: np.ndarray, radius: float) -> np.ndarray:
@@ -161,8 +206,7 @@ def pixel_rays(
     """
     if uv.shape[-1] != 2:
         raise ValueError(f"uv must end in 2, got {tuple(uv.shape)}")
-    ones = torch.ones_like(uv[..., :1])
-    pix = torch.cat([uv, ones], dim=-1)
+    pix = torch.cat([uv, torch.ones_like(uv[..., :1])], dim=-1)  # not kornia's: that one refuses a single uv (2,)
     d_cam = pix @ torch.linalg.inv(K).T
     d_world = d_cam @ R  # R^T d for row vectors
     d_world = d_world / d_world.norm(dim=-1, keepdim=True)
@@ -170,12 +214,14 @@ def pixel_rays(
     return center.expand_as(d_world), d_world
 
 
+def pixel_centers(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """(height, width, 2) continuous coordinates (j + 0.5, i + 0.5) of every pixel centre (kornia's pixel grid)."""
+    return create_meshgrid(height, width, normalized_coordinates=False, device=device, dtype=dtype)[0] + 0.5
+
+
 def image_rays(cams: Cameras, height: int, width: int, device=None, dtype=torch.float32):
     """Rays for every pixel centre of every view: origins, dirs of shape (N, H, W, 3)."""
-    jj, ii = torch.meshgrid(
-        torch.arange(width, dtype=torch.float64) + 0.5, torch.arange(height, dtype=torch.float64) + 0.5, indexing="xy"
-    )
-    uv = torch.stack([jj, ii], dim=-1)
+    uv = pixel_centers(height, width, dtype=torch.float64)
     os, ds = [], []
     for i in range(len(cams)):
         o, d = pixel_rays(torch.from_numpy(cams.K[i]), torch.from_numpy(cams.R[i]), torch.from_numpy(cams.t[i]), uv)
@@ -204,8 +250,7 @@ def sphere_bounds(origins: torch.Tensor, dirs: torch.Tensor, radius: float = 1.0
 
 def project(points: torch.Tensor, P: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Project points (M, 3) with projections P (N, 3, 4): pixel coords (N, M, 2) and depth z (N, M)."""
-    ph = torch.cat([points, torch.ones_like(points[:, :1])], dim=-1)
-    x = torch.einsum("nij,mj->nmi", P, ph)
+    x = torch.einsum("nij,mj->nmi", P, convert_points_to_homogeneous(points))
     z = x[..., 2]
     zs = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
     return x[..., :2] / zs[..., None], z

@@ -1,6 +1,6 @@
 """Training data: a workspace's images, masks, cameras and optional sparse depth, and the ray sampler.
 
-Layout (DESIGN.md): ``images/`` (view i = i-th file in sorted order), ``masks/`` (same stems, PNG),
+Layout (docs/design.md, "Workspace"): ``images/`` (view i = i-th file in sorted order), ``masks/`` (same stems, PNG),
 ``depth/`` (same stems, npz with ``uv`` (K, 2) continuous pixel coordinates, ``depth`` (K,) ray depth in
 the normalized frame, ``confidence`` (K,)), ``cameras.npz``.
 """
@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from kornia.geometry.conversions import convert_points_to_homogeneous
 
 from .cameras import Cameras, load_cameras, sphere_frame
 
@@ -20,6 +21,7 @@ IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 
 
 def list_images(folder: Path) -> list[Path]:
+    """The image files of ``folder`` (by extension), sorted: view i is the i-th."""
     return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_EXTS and p.is_file())
 
 
@@ -32,11 +34,12 @@ def read_rgb(path: Path) -> np.ndarray:
     return img.astype(np.float32) / 255.0
 
 
-def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
+def read_mask(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Read a mask as float32 {0, 1} (grey > 127), (H, W); ``shape``: the (H, W) it must have (its image's)."""
     m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if m is None:
         raise ValueError(f"{path}: not a readable mask image; write a PNG with 0 = background, 255 = object")
-    if m.shape != shape:
+    if shape is not None and m.shape != shape:
         raise ValueError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} but its image is {shape[1]}x{shape[0]}; "
                          "resize the mask to the image")
     return (m > 127).astype(np.float32)
@@ -108,8 +111,7 @@ class SceneData:
 
     def rays(self, view: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays (origins, unit dirs) through continuous pixel coordinates uv (B, 2) of views (B,)."""
-        pix = torch.cat([uv, torch.ones_like(uv[:, :1])], dim=-1)
-        d = torch.einsum("bij,bj->bi", self.Kinv[view], pix)
+        d = torch.einsum("bij,bj->bi", self.Kinv[view], convert_points_to_homogeneous(uv))
         d = torch.einsum("bij,bj->bi", self.Rt[view], d)
         d = d / d.norm(dim=-1, keepdim=True)
         return self.centers[view], d
@@ -209,6 +211,8 @@ class RaySampler:
         return (view * (H * W) + (rem // w) * W + rem % w).to(self.data.masks.device)
 
     def sample(self, n: int):
+        """:meth:`pixels` of ``n`` pixels: ``boundary_fraction`` of them from the mask-boundary band, the rest
+        :meth:`uniform`."""
         dev = self.data.masks.device
         nb = int(round(n * self.boundary_fraction)) if self.band.numel() > 0 else 0
         u = self.uniform(n - nb)

@@ -13,24 +13,26 @@ import torch
 import torch.nn.functional as F
 from skimage import measure
 
+from .cameras import in_contact_band
+from .fields import Field, evaluate_in_chunks
 from .hull import grid_points
+from .march import LogitFn
+
+
+def _logits_float32(logit_fn: LogitFn, pts: torch.Tensor, chunk: int) -> torch.Tensor:
+    """``logit_fn`` at ``pts`` (M, 3) in chunks, as float32 (M,)."""
+    return evaluate_in_chunks(lambda q: logit_fn(q).float(), pts, chunk)
 
 
 @torch.no_grad()
-def _eval(fn, pts: torch.Tensor, chunk: int) -> torch.Tensor:
-    return torch.cat([fn(pts[s : s + chunk]).float() for s in range(0, pts.shape[0], chunk)]) if pts.shape[0] else \
-        torch.zeros(0, device=pts.device)
-
-
-@torch.no_grad()
-def logit_volume(logit_fn, resolution: int = 256, coarse_factor: int = 4, device=None, chunk: int = 131072,
+def logit_volume(logit_fn: LogitFn, resolution: int = 256, coarse_factor: int = 4, device=None, chunk: int = 131072,
                  outside: float = -10.0) -> tuple[np.ndarray, int]:
     """(R+1)³ logit lattice over [-1, 1]³ [x, y, z], exact near the level set; returns (volume, fine evaluations)."""
     if resolution % coarse_factor:
         raise ValueError(f"resolution {resolution} must be a multiple of coarse_factor {coarse_factor}")
     rc = resolution // coarse_factor
     cp = grid_points(rc, device=device)
-    cv = _eval(logit_fn, cp, chunk).view(rc + 1, rc + 1, rc + 1)
+    cv = _logits_float32(logit_fn, cp, chunk).view(rc + 1, rc + 1, rc + 1)
     cv = torch.where(cp.norm(dim=-1).view_as(cv) > 1.0, torch.full_like(cv, outside), cv)
     # coarse cells straddling 0
     pos = (cv >= 0).float()[None, None]
@@ -47,31 +49,36 @@ def logit_volume(logit_fn, resolution: int = 256, coarse_factor: int = 4, device
     flag = flag | F.pad(flag[:-1, :-1, :-1][None, None].float(), (1, 0, 1, 0, 1, 0))[0, 0].bool()
     idx = flag.nonzero()
     pts = idx.float() / resolution * 2 - 1
-    vals = _eval(logit_fn, pts, chunk)
+    vals = _logits_float32(logit_fn, pts, chunk)
     vals = torch.where(pts.norm(dim=-1) > 1.0, torch.full_like(vals, outside), vals)
     fine[idx[:, 0], idx[:, 1], idx[:, 2]] = vals
     return fine.cpu().numpy(), int(idx.shape[0])
 
 
-def refine_vertices(logit_fn, verts: torch.Tensor, steps: int, max_move: float, level: float = 0.0) -> torch.Tensor:
+def _newton_step(logit_fn: LogitFn, points: torch.Tensor, max_move: float, level: float) -> torch.Tensor:
+    """One guarded Newton step of points (m, 3) towards the level set (see :func:`refine_vertices`)."""
+    with torch.enable_grad():
+        q = points.detach().requires_grad_(True)
+        f = logit_fn(q) - level
+        (g,) = torch.autograd.grad(f.sum(), q)
+    gn2 = (g * g).sum(-1, keepdim=True)
+    step = f.detach()[:, None] * g / gn2.clamp_min(1e-8)
+    n = step.norm(dim=-1, keepdim=True)
+    step = torch.where(n > max_move, step * (max_move / n.clamp_min(1e-12)), step)
+    step = torch.where(gn2 > 1e-8, step, torch.zeros_like(step))
+    return (q.detach() - step).to(points.dtype)
+
+
+def refine_vertices(logit_fn: LogitFn, verts: torch.Tensor, steps: int, max_move: float,
+                    level: float = 0.0) -> torch.Tensor:
     """Newton steps p ← p − (f − level)∇f/|∇f|², each clamped to ``max_move``; guarded for |∇f| → 0."""
     v = verts.clone()
     for _ in range(steps):
-        for s in range(0, v.shape[0], 65536):
-            with torch.enable_grad():
-                q = v[s : s + 65536].detach().requires_grad_(True)
-                f = logit_fn(q) - level
-                (g,) = torch.autograd.grad(f.sum(), q)
-            gn2 = (g * g).sum(-1, keepdim=True)
-            step = f.detach()[:, None] * g / gn2.clamp_min(1e-8)
-            n = step.norm(dim=-1, keepdim=True)
-            step = torch.where(n > max_move, step * (max_move / n.clamp_min(1e-12)), step)
-            step = torch.where(gn2 > 1e-8, step, torch.zeros_like(step))
-            v[s : s + 65536] = q.detach() - step
+        v = evaluate_in_chunks(lambda q: _newton_step(logit_fn, q, max_move, level), v, 65536, (3,), v.dtype)
     return v
 
 
-def footprint_occupancy(field, height: float):
+def footprint_occupancy(field: Field, height: float) -> LogitFn:
     """The field's occupancy logit with the band ``0 ≤ h < height`` above its support plane replaced by the vertical
     extrusion of the cross-section at ``height`` (the flat cap on the plane kept). An object standing on a floor
     meets it with the footprint of what stands just above, and there automatic masks are least sure (the contact
@@ -82,14 +89,14 @@ def footprint_occupancy(field, height: float):
     def occupancy(p: torch.Tensor) -> torch.Tensor:
         pl = field.support.to(device=p.device, dtype=p.dtype)
         h = p @ pl[:3] + pl[3]
-        lift = torch.where((h >= 0) & (h < height), height - h, torch.zeros_like(h))
+        lift = torch.where(in_contact_band(h, height), height - h, torch.zeros_like(h))
         return field.clip_to_support(p, field.occupancy(p + lift[:, None] * pl[:3]))
 
     return occupancy
 
 
-def extract_mesh(field, resolution: int = 256, coarse_factor: int = 4, refine_steps: int = 2, level: float = 0.0,
-                 device=None, footprint: float = 0.0):
+def extract_mesh(field: Field, resolution: int = 256, coarse_factor: int = 4, refine_steps: int = 2, level: float = 0.0,
+                 device=None, footprint: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mesh of the level set in the normalized frame: vertices (V, 3) float64, faces (F, 3), colours (V, 3) uint8;
     ``footprint`` > 0: the lowest band above the support plane extruded (:func:`footprint_occupancy`).
 
@@ -108,6 +115,6 @@ def extract_mesh(field, resolution: int = 256, coarse_factor: int = 4, refine_st
     if refine_steps > 0:
         vt = refine_vertices(occupancy, vt, refine_steps, 0.5 * 2.0 / resolution, level)
     with torch.no_grad():
-        cols = torch.cat([field.texture(vt[s : s + 65536]) for s in range(0, vt.shape[0], 65536)])
+        cols = evaluate_in_chunks(field.texture, vt, 65536, (3,))
     colors = (cols.clamp(0, 1) * 255).round().byte().cpu().numpy()
     return vt.double().cpu().numpy(), faces.astype(np.int64), colors

@@ -11,13 +11,16 @@ Two representations:
   colour the tri-plane's coupling is harmless and its 2-D ``grid_sample`` is ~10× cheaper than 3-D features.
 * ``mlp``: the reference, a plain ReLU MLP on Fourier-encoded xyz (the original DVR family), slow on CPU.
 
-Both map points in the normalized frame (object inside the unit sphere) and work on any device.
+Both map points in the normalized frame (object inside the unit sphere) and work on any device, and both
+implement the :class:`Field` interface that the trainer, the renderer and the extraction use.
+:func:`evaluate_in_chunks` evaluates a field (or any point function) over many points in bounded memory.
 """
 
 from __future__ import annotations
 
+import abc
 from dataclasses import dataclass
-from typing import Literal
+from typing import Callable, Literal
 
 import torch
 import torch.nn as nn
@@ -56,7 +59,7 @@ class SupportClip:
     """Occupancy clipped to the half-space above a support plane: min(f(p), slope · height(p)).
 
     Nothing below the floor or table an object stands on can be occupied, and where the object touches it the
-    level set is the plane itself: the extracted mesh is closed by a flat cap. Mixed into both fields."""
+    level set is the plane itself: the extracted mesh is closed by a flat cap. Mixed into :class:`Field`."""
 
     support: torch.Tensor | None = None
 
@@ -65,11 +68,64 @@ class SupportClip:
         self.support = None if plane is None else torch.as_tensor(plane, dtype=torch.float32).clone()
 
     def clip_to_support(self, p: torch.Tensor, logit: torch.Tensor) -> torch.Tensor:
+        """``logit`` (M,) at points p (M, 3) clipped to min(logit, slope · height above the plane), if one is set."""
         if self.support is None:
             return logit
         pl = self.support.to(device=p.device, dtype=logit.dtype)
         h = p.to(logit.dtype) @ pl[:3] + pl[3]
         return torch.minimum(logit, SUPPORT_SLOPE * h)
+
+
+class Field(SupportClip, nn.Module, abc.ABC):
+    """What every occupancy + texture field provides (points (M, 3) in the normalized frame, any device).
+
+    The trainer reads the parameter groups, initialises from the visual hull, regularises with ``tv_loss`` and,
+    when ``supports_resize``, trains coarse to fine through ``resize_base``; rendering and extraction only use
+    ``occupancy``, ``texture`` and the support clip (``set_support`` / ``clip_to_support``)."""
+
+    cfg: FieldConfig
+
+    supports_resize: bool = False
+    """Whether :meth:`resize_base` can change the resolution of the occupancy (coarse-to-fine training)."""
+
+    @abc.abstractmethod
+    def occupancy(self, p: torch.Tensor) -> torch.Tensor:
+        """Occupancy logit at points p (M, 3) → (M,) (> 0 inside; clipped to the support plane when set)."""
+
+    @abc.abstractmethod
+    def texture(self, p: torch.Tensor) -> torch.Tensor:
+        """RGB in [0, 1] at points p (M, 3) → (M, 3)."""
+
+    @abc.abstractmethod
+    def init_occupancy(self, logits: torch.Tensor) -> None:
+        """Start the occupancy from a (R+1)³ logit volume indexed [x, y, z] over [-1, 1]³ (the visual hull)."""
+
+    @abc.abstractmethod
+    def occupancy_parameters(self) -> list[nn.Parameter]:
+        """The parameters the occupancy depends on (what the implicit depth gradient flows into)."""
+
+    @abc.abstractmethod
+    def grid_parameters(self) -> list[nn.Parameter]:
+        """The parameters trained with the grid learning rate (the others get the MLP learning rate)."""
+
+    @abc.abstractmethod
+    def tv_loss(self) -> torch.Tensor:
+        """Total-variation regulariser of the occupancy (0-d; exactly 0 where it does not apply)."""
+
+    @property
+    def grid_resolution(self) -> int | None:
+        """Cells per axis of the resizable occupancy grid now (None: the field has none)."""
+        return None
+
+    def grid_resolution_in(self, state: dict[str, torch.Tensor]) -> int | None:
+        """Cells per axis of the occupancy grid in a state_dict of this kind of field (None: it has none)."""
+        return None
+
+    def resize_base(self, res: int) -> tuple[nn.Parameter, nn.Parameter]:
+        """Resample the occupancy to ``res`` cells per axis; returns (old, new) parameter so an optimizer can swap
+        them. Only for fields with ``supports_resize``."""
+        raise NotImplementedError(f"{type(self).__name__} cannot change its resolution (supports_resize is False); "
+                                  "coarse-to-fine training needs field.kind 'grid'")
 
 
 class TriPlane(nn.Module):
@@ -83,6 +139,7 @@ class TriPlane(nn.Module):
         self.out_dim = channels * len(resolutions)
 
     def forward(self, p: torch.Tensor) -> torch.Tensor:
+        """Features (M, channels × levels) at points p (M, 3)."""
         q = torch.stack([p[:, [0, 1]], p[:, [0, 2]], p[:, [1, 2]]]).unsqueeze(2)  # (3, M, 1, 2)
         q = q.to(self.planes[0].dtype)
         feats = []
@@ -106,8 +163,13 @@ def _mlp(inp: int, hidden: int, out: int, layers: int, zero_last: bool = False) 
     return nn.Sequential(*mods)
 
 
-class GridField(SupportClip, nn.Module):
-    """Dense logit grid (+ hull prior) + tri-plane residual; tri-plane texture."""
+class GridField(Field):
+    """Dense logit grid (+ hull prior) + tri-plane residual; tri-plane texture.
+
+    The grid ``base`` (1, 1, R+1, R+1, R+1) is stored [z, y, x] (``grid_sample``'s order for coordinates (x, y, z));
+    ``init_occupancy`` takes volumes indexed [x, y, z] and transposes them."""
+
+    supports_resize = True
 
     def __init__(self, cfg: FieldConfig):
         super().__init__()
@@ -140,7 +202,17 @@ class GridField(SupportClip, nn.Module):
         self.base = nn.Parameter(vol.contiguous())
         return old, self.base
 
+    @property
+    def grid_resolution(self) -> int:
+        """Cells per axis of the dense logit grid now."""
+        return self.base.shape[-1] - 1
+
+    def grid_resolution_in(self, state: dict[str, torch.Tensor]) -> int | None:
+        """Cells per axis of the dense logit grid in a state_dict of a GridField."""
+        return state["base"].shape[-1] - 1 if "base" in state else None
+
     def base_logit(self, p: torch.Tensor) -> torch.Tensor:
+        """Trilinear lookup of the dense logit grid at points p (M, 3) → (M,) (border values outside [-1, 1]³)."""
         g = p.to(self.base.dtype).view(1, -1, 1, 1, 3)
         return F.grid_sample(self.base, g, mode="bilinear", padding_mode="border", align_corners=True).view(-1)
 
@@ -156,11 +228,13 @@ class GridField(SupportClip, nn.Module):
         return torch.sigmoid(self.tex_head(self.tex_planes(p)))
 
     def occupancy_parameters(self) -> list[nn.Parameter]:
+        """The dense grid (and the occupancy tri-plane and head when present)."""
         if self.occ_planes is None:
             return [self.base]
         return [self.base, *self.occ_planes.parameters(), *self.occ_head.parameters()]
 
     def grid_parameters(self) -> list[nn.Parameter]:
+        """The dense grid and every tri-plane (the MLP heads are not grids)."""
         occ = [] if self.occ_planes is None else list(self.occ_planes.parameters())
         return [self.base, *occ, *self.tex_planes.parameters()]
 
@@ -175,8 +249,10 @@ class GridField(SupportClip, nn.Module):
         return tv
 
 
-class FourierMLPField(SupportClip, nn.Module):
-    """Reference: plain MLPs on Fourier-encoded xyz (occupancy + texture)."""
+class FourierMLPField(Field):
+    """Reference: plain MLPs on Fourier-encoded xyz (occupancy + texture). One resolution: no ``resize_base``."""
+
+    supports_resize = False
 
     def __init__(self, cfg: FieldConfig):
         super().__init__()
@@ -194,27 +270,33 @@ class FourierMLPField(SupportClip, nn.Module):
         return torch.cat([p, torch.sin(x).flatten(-2), torch.cos(x).flatten(-2)], dim=-1).to(self.freqs.dtype)
 
     def occupancy(self, p: torch.Tensor) -> torch.Tensor:
+        """Occupancy logit (M,): the MLP plus a sphere prior of radius ``prior_radius``, support-clipped."""
         sphere = 10.0 * (self.prior_radius - p.norm(dim=-1))
         return self.clip_to_support(p, self.occ(self._enc(p)).view(-1) + sphere.to(self.freqs.dtype))
 
     def texture(self, p: torch.Tensor) -> torch.Tensor:
+        """RGB in [0, 1] at points p (M, 3) → (M, 3)."""
         return torch.sigmoid(self.tex(self._enc(p)))
 
     @torch.no_grad()
-    def init_occupancy(self, logits: torch.Tensor) -> None:  # the reference starts from a sphere
+    def init_occupancy(self, logits: torch.Tensor) -> None:
+        """Ignored: the reference starts from its sphere prior."""
         return None
 
     def occupancy_parameters(self) -> list[nn.Parameter]:
+        """The occupancy MLP."""
         return list(self.occ.parameters())
 
     def grid_parameters(self) -> list[nn.Parameter]:
+        """None: every parameter is an MLP weight."""
         return []
 
     def tv_loss(self) -> torch.Tensor:
+        """Exactly 0 (no grid to regularise)."""
         return torch.zeros((), device=self.freqs.device)
 
 
-def make_field(cfg: FieldConfig) -> nn.Module:
+def make_field(cfg: FieldConfig) -> Field:
     """Build the field named by ``cfg.kind``."""
     if cfg.kind == "grid":
         return GridField(cfg)
@@ -223,7 +305,23 @@ def make_field(cfg: FieldConfig) -> nn.Module:
     raise ValueError(f"unknown field kind '{cfg.kind}' (use 'grid' or 'mlp')")
 
 
-def finite_difference_normals(logit_fn, p: torch.Tensor, h: float = 5e-3) -> torch.Tensor:
+def evaluate_in_chunks(fn: Callable[[torch.Tensor], torch.Tensor], points: torch.Tensor, chunk: int = 65536,
+                       trailing_shape: tuple[int, ...] = (), dtype: torch.dtype | None = None) -> torch.Tensor:
+    """``fn`` over ``points`` (M, ...) in chunks of at most ``chunk`` rows, concatenated: fn(points) in bounded memory.
+
+    ``fn`` maps (m, ...) rows to (m, *trailing_shape) results (e.g. ``field.occupancy``: (), ``field.texture``:
+    (3,)). An empty input returns ``torch.zeros(0, *trailing_shape, dtype=dtype)`` on the points' device without
+    calling ``fn`` (``dtype`` None: torch's default). Gradient mode is the caller's (wrap in ``torch.no_grad()``).
+    """
+    if chunk < 1:
+        raise ValueError(f"chunk must be ≥ 1, got {chunk}")
+    if points.shape[0] == 0:
+        return torch.zeros((0, *trailing_shape), dtype=dtype, device=points.device)
+    return torch.cat([fn(points[s : s + chunk]) for s in range(0, points.shape[0], chunk)])
+
+
+def finite_difference_normals(logit_fn: Callable[[torch.Tensor], torch.Tensor], p: torch.Tensor,
+                              h: float = 5e-3) -> torch.Tensor:
     """Unit outward normals −∇f/|∇f| by central differences (differentiable, no double backward)."""
     offs = torch.eye(3, dtype=p.dtype, device=p.device) * h
     pts = torch.cat([p + o for o in offs] + [p - o for o in offs], dim=0)

@@ -12,7 +12,8 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from .cameras import plane_height, project
+from .cameras import in_contact_band, plane_height, project
+from .fields import evaluate_in_chunks
 
 
 def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, sizes: torch.Tensor | None = None):
@@ -41,21 +42,26 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
     the support plane ``ground`` (4,) when the object stands on one. Within ``contact_band`` above that plane
     (where the object meets its support and automatic masks are least sure) a point needs ≥ max(``min_views``,
     2) views to be outside. ``sizes``: see :func:`mask_lookup`."""
-    out = []
-    for s in range(0, points.shape[0], chunk):
-        p = points[s : s + chunk]
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"outside_hull: points must have shape (N, 3), got {tuple(points.shape)}")
+    if P.ndim != 3 or P.shape[1:] != (3, 4) or masks.ndim != 3 or masks.shape[0] != P.shape[0]:
+        raise ValueError(f"outside_hull: P must be (V, 3, 4) and masks (V, H, W), got {tuple(P.shape)} and "
+                         f"{tuple(masks.shape)}")
+
+    def outside(p: torch.Tensor) -> torch.Tensor:
         vals, seen = mask_lookup(p, P, masks, sizes)
         n_out = ((vals < 0.5) & seen).sum(0)
         need = torch.full_like(n_out, min_views)
         if ground is not None:
             hgt = plane_height(ground, p)
             if contact_band > 0:
-                need = torch.where((hgt >= 0) & (hgt < contact_band), torch.clamp(need, min=2), need)
+                need = torch.where(in_contact_band(hgt, contact_band), torch.clamp(need, min=2), need)
         free = (n_out >= need) | (seen.sum(0) == 0)
         if ground is not None:
             free |= hgt < 0
-        out.append(free)
-    return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool, device=points.device)
+        return free
+
+    return evaluate_in_chunks(outside, points, chunk, dtype=torch.bool)
 
 
 def grid_points(res: int, device=None, dtype=torch.float32) -> torch.Tensor:
@@ -86,7 +92,8 @@ def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: 
 
 def hull_bounding_sphere(P: torch.Tensor, masks: torch.Tensor, res: int = 64, min_views: int = 1,
                          margin: float = 1.1, ground: np.ndarray | None = None,
-                         sizes: torch.Tensor | None = None, contact_band: float = 0.0) -> tuple[np.ndarray, float] | None:
+                         sizes: torch.Tensor | None = None,
+                         contact_band: float = 0.0) -> tuple[np.ndarray, float] | None:
     """Centre and radius (this frame) of a sphere around the visual hull of the masks (above the support plane
     ``ground``), × ``margin`` plus one cell; ``None`` when the hull is empty or already fills the unit sphere (no
     tighter frame to gain)."""

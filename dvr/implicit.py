@@ -44,6 +44,7 @@ class _ImplicitDepth(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, origins, dirs, depth, logit_fn, eps, *params):  # noqa: D401
+        """Save (r0, w, d̂, θ) for backward; return a copy of d̂."""
         ctx.logit_fn = logit_fn
         ctx.eps = eps
         ctx.n_params = len(params)
@@ -52,6 +53,7 @@ class _ImplicitDepth(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_depth):
+        """−(∇ₚf · w)⁻¹ (guarded) times ∂f/∂(r0, w, θ) at p̂ = r0 + d̂w, for the inputs that need a gradient."""
         origins, dirs, depth, *params = ctx.saved_tensors
         with torch.enable_grad():
             o = origins.detach().requires_grad_(ctx.needs_input_grad[0])

@@ -28,6 +28,8 @@ LogitFn = Callable[[torch.Tensor], torch.Tensor]
 
 @dataclass
 class SurfaceResult:
+    """What :func:`find_surface` returns per ray (B rays)."""
+
     depth: torch.Tensor  # (B,) refined depth for hits; near for INSIDE; far for MISS (finite everywhere)
     status: torch.Tensor  # (B,) int8 codes MISS / HIT / INSIDE
     near: torch.Tensor  # (B,) sphere entry
@@ -36,6 +38,7 @@ class SurfaceResult:
 
     @property
     def hit(self) -> torch.Tensor:
+        """(B,) True for rays with status HIT."""
         return self.status == HIT
 
 
@@ -117,24 +120,55 @@ def find_surface(
     _check_rays(origins, dirs)
     if n_steps < 2:
         raise ValueError(f"n_steps must be ≥ 2, got {n_steps}")
-    B = origins.shape[0]
-    dev, dt = origins.device, origins.dtype
     if near is None or far is None:
         near, far, valid = sphere_bounds(origins, dirs)
     else:
         valid = far > near
     depths = sample_depths(near, far, n_steps, jitter, generator)  # (B, S) — small: no field values kept
+    m = _MarchState.start(origins, near, far)
+    _march(logit_fn, origins, dirs, depths, near, valid, level, max_points, m)
 
-    status = torch.full((B,), MISS, dtype=torch.int8, device=dev)
-    out_depth = far.clone()
-    max_val = torch.full((B,), -float("inf"), dtype=dt, device=dev)
-    max_depth = 0.5 * (near + far)
-    lo_d = torch.zeros(B, dtype=dt, device=dev)
-    hi_d = torch.zeros_like(lo_d)
-    lo_f = torch.zeros_like(lo_d)
-    hi_f = torch.zeros_like(lo_d)
-    prev = torch.zeros(B, dtype=dt, device=dev)
+    hit = (m.status == HIT).nonzero().view(-1)
+    if hit.numel() > 0:
+        lo_d, hi_d, lo_f, hi_f = m.lo_d[hit], m.hi_d[hit], m.lo_f[hit], m.hi_f[hit]
+        d = secant(
+            logit_fn, origins[hit], dirs[hit], lo_d, hi_d, lo_f + level, hi_f + level, n_secant, level,
+        ) if n_secant > 0 else lo_d - lo_f * (hi_d - lo_d) / (hi_f - lo_f)
+        m.depth[hit] = d
+    return SurfaceResult(m.depth, m.status, near, far, m.max_depth)
 
+
+@dataclass
+class _MarchState:
+    """Per-ray state of the march (B rays): status and depth so far, the largest logit − level seen and its depth,
+    the bracket (depths, logits − level) of the first free → occupied change, and the last sample's logit."""
+
+    status: torch.Tensor
+    depth: torch.Tensor
+    max_val: torch.Tensor
+    max_depth: torch.Tensor
+    lo_d: torch.Tensor
+    hi_d: torch.Tensor
+    lo_f: torch.Tensor
+    hi_f: torch.Tensor
+    prev: torch.Tensor
+
+    @classmethod
+    def start(cls, origins: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> _MarchState:
+        """Every ray a MISS at ``far``, no logit seen yet (largest-logit depth: the chord's middle)."""
+        B, dev, dt = origins.shape[0], origins.device, origins.dtype
+        lo_d = torch.zeros(B, dtype=dt, device=dev)
+        return cls(status=torch.full((B,), MISS, dtype=torch.int8, device=dev), depth=far.clone(),
+                   max_val=torch.full((B,), -float("inf"), dtype=dt, device=dev), max_depth=0.5 * (near + far),
+                   lo_d=lo_d, hi_d=torch.zeros_like(lo_d), lo_f=torch.zeros_like(lo_d), hi_f=torch.zeros_like(lo_d),
+                   prev=torch.zeros(B, dtype=dt, device=dev))
+
+
+def _march(logit_fn: LogitFn, origins: torch.Tensor, dirs: torch.Tensor, depths: torch.Tensor, near: torch.Tensor,
+           valid: torch.Tensor, level: float, max_points: int, m: _MarchState) -> None:
+    """Evaluate the samples ``depths`` (B, S) in blocks of ≤ ``max_points`` points, updating ``m`` in place; a ray
+    leaves the work set once its first crossing is found (or its first sample is occupied: INSIDE)."""
+    n_steps, dt = depths.shape[1], origins.dtype
     active = valid.nonzero().view(-1)
     block = max(1, min(n_steps, max_points // max(1, active.numel())))
     s0 = 0
@@ -145,17 +179,17 @@ def find_surface(
         vals = logit_fn(pts.reshape(-1, 3)).to(dt).view(active.numel(), s1 - s0) - level
         # track the sample with the largest logit (used for rays inside the mask that miss)
         bmax, barg = vals.max(dim=1)
-        better = bmax > max_val[active]
-        max_val[active] = torch.where(better, bmax, max_val[active])
-        max_depth[active] = torch.where(better, d_blk.gather(1, barg[:, None])[:, 0], max_depth[active])
+        better = bmax > m.max_val[active]
+        m.max_val[active] = torch.where(better, bmax, m.max_val[active])
+        m.max_depth[active] = torch.where(better, d_blk.gather(1, barg[:, None])[:, 0], m.max_depth[active])
         if s0 == 0:
             inside = vals[:, 0] >= 0
-            status[active[inside]] = INSIDE
-            out_depth[active[inside]] = near[active[inside]]
+            m.status[active[inside]] = INSIDE
+            m.depth[active[inside]] = near[active[inside]]
             vv, dd = vals, d_blk
         else:
             inside = torch.zeros_like(vals[:, 0], dtype=torch.bool)
-            vv = torch.cat([prev[active, None], vals], dim=1)
+            vv = torch.cat([m.prev[active, None], vals], dim=1)
             dd = torch.cat([depths[active, s0 - 1 : s0], d_blk], dim=1)
         cross = (vv[:, :-1] < 0) & (vv[:, 1:] >= 0)  # may have 0 columns (first block of width 1)
         found = cross.any(dim=1) & ~inside
@@ -163,20 +197,11 @@ def find_surface(
             first = cross.to(torch.int8).argmax(dim=1)
             f_idx = active[found]
             k = first[found]
-            lo_d[f_idx] = dd[found].gather(1, k[:, None])[:, 0]
-            hi_d[f_idx] = dd[found].gather(1, (k + 1)[:, None])[:, 0]
-            lo_f[f_idx] = vv[found].gather(1, k[:, None])[:, 0]
-            hi_f[f_idx] = vv[found].gather(1, (k + 1)[:, None])[:, 0]
-            status[f_idx] = HIT
-        prev[active] = vals[:, -1]
+            m.lo_d[f_idx] = dd[found].gather(1, k[:, None])[:, 0]
+            m.hi_d[f_idx] = dd[found].gather(1, (k + 1)[:, None])[:, 0]
+            m.lo_f[f_idx] = vv[found].gather(1, k[:, None])[:, 0]
+            m.hi_f[f_idx] = vv[found].gather(1, (k + 1)[:, None])[:, 0]
+            m.status[f_idx] = HIT
+        m.prev[active] = vals[:, -1]
         active = active[~(found | inside)]
         s0 = s1
-
-    hit = (status == HIT).nonzero().view(-1)
-    if hit.numel() > 0:
-        d = secant(
-            logit_fn, origins[hit], dirs[hit], lo_d[hit], hi_d[hit], lo_f[hit] + level, hi_f[hit] + level,
-            n_secant, level,
-        ) if n_secant > 0 else lo_d[hit] - lo_f[hit] * (hi_d[hit] - lo_d[hit]) / (hi_f[hit] - lo_f[hit])
-        out_depth[hit] = d
-    return SurfaceResult(out_depth, status, near, far, max_depth)

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import torch
 
+from .data import SceneData
+from .fields import Field
 from .march import HIT, find_surface
 
 
 @torch.no_grad()
-def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, n_steps: int = 128, n_secant: int = 8,
-                background: float = 0.0, chunk: int = 16384):
+def render_rays(field: Field, origins: torch.Tensor, dirs: torch.Tensor, n_steps: int = 128, n_secant: int = 8,
+                background: float = 0.0, chunk: int = 16384) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Colour, hit mask and depth for rays (B, 3): (B, 3), (B,), (B,)."""
     rgb = torch.full_like(origins, background)
     hit = torch.zeros(origins.shape[0], dtype=torch.bool, device=origins.device)
@@ -28,7 +30,8 @@ def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, n_steps: int =
 
 
 @torch.no_grad()
-def render_view(field, data, view: int, scale: float = 1.0, n_steps: int = 128, background: float = 0.0):
+def render_view(field: Field, data: SceneData, view: int, scale: float = 1.0, n_steps: int = 128,
+                background: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Render view ``view`` of ``data`` (a SceneData) at ``scale`` × its resolution: (h, w, 3), (h, w)."""
     W, H = data.view_size(view)
     h, w = max(1, round(H * scale)), max(1, round(W * scale))

@@ -18,40 +18,85 @@ from tqdm import tqdm
 
 from . import losses as L
 from .appearance import ViewAppearance
-from .cameras import plane_height
+from .cameras import in_contact_band, plane_height
 from .data import RaySampler, SceneData
 from .device import resolve_device
-from .fields import FieldConfig, finite_difference_normals, make_field
+from .fields import Field, FieldConfig, finite_difference_normals, make_field
 from .hull import carve_along_rays, hull_bounding_sphere, hull_logits, outside_hull
 from .implicit import implicit_depth
-from .march import HIT, INSIDE, MISS, find_surface
+from .march import HIT, INSIDE, MISS, SurfaceResult, find_surface
 from .render import render_view
 
 
 @dataclass
 class LossWeights:
-    """Weights of the DVR loss terms (each term is a mean, so weights do not depend on the batch size)."""
+    """Weights of the DVR loss terms (each term is a mean, so weights do not depend on the batch size). Each field
+    weights the term of the same name in :meth:`Trainer.losses` (``terms[name]``, logged unweighted under that
+    name)."""
 
     rgb: float = 1.0
-    """L1 colour loss on rays that hit where the mask is set."""
+    """Term ``rgb`` (:func:`dvr.losses.rgb_loss`): L1 colour loss on rays that hit where the mask is set."""
     freespace: float = 1.0
-    """BCE→0 for rays outside the mask (at the hit point, or a random point of a missing ray)."""
+    """Term ``freespace`` (:func:`dvr.losses.freespace_loss` at :meth:`Trainer.freespace_points`): BCE→0 for rays
+    outside the mask (at the hit point, or a random point of a missing ray)."""
     occupancy: float = 1.0
-    """BCE→1 for mask rays the rendering misses (at the max-logit sample, or at the sparse depth)."""
+    """Term ``occupancy`` (:func:`dvr.losses.occupancy_loss` at :meth:`Trainer.occupancy_points` and the missed
+    sparse-depth points): BCE→1 for mask rays the rendering misses (at the max-logit sample, or at the sparse
+    depth)."""
     depth: float = 1.0
-    """L1 between rendered and sparse SfM depth (only where depth/ exists)."""
+    """Term ``depth`` (:func:`dvr.losses.depth_loss`): L1 between rendered and sparse SfM depth (only where depth/
+    exists; 0 also skips sampling the sparse-depth rays, so ``occupancy`` and ``depth_free`` lose them too)."""
     depth_free: float = 1.0
-    """BCE→0 at a random point of a sparse-depth ray in front of its depth (free space seen by SfM)."""
+    """Term ``depth_free`` (:func:`dvr.losses.freespace_loss`): BCE→0 at a random point of a sparse-depth ray in
+    front of its depth (free space seen by SfM)."""
     carve: float = 1.0
-    """BCE→0 at random points of the unit sphere outside the visual hull of the masks."""
+    """Term ``carve`` (:func:`dvr.losses.freespace_loss` at :meth:`Trainer.carve_points`): BCE→0 at random points of
+    the unit sphere outside the visual hull of the masks."""
     tv: float = 0.0
-    """Total variation of the occupancy grids (off: hull init and carving already keep space clean, and it
-    flattens the logit ramp where no ray looks)."""
+    """Term ``tv`` (:meth:`dvr.fields.Field.tv_loss`): total variation of the occupancy grids (off: hull init and
+    carving already keep space clean, and it flattens the logit ramp where no ray looks)."""
     normal: float = 0.05
-    """Normal smoothness: |n(p̂) − n(p̂ + noise)| on hit points."""
+    """Term ``normal`` (:meth:`Trainer.normal_loss`): normal smoothness |n(p̂) − n(p̂ + noise)| on hit points (0:
+    not computed)."""
     appearance: float = 0.01
-    """Pull of the per-view colour transforms towards identity (mean squared log-gain; with
-    ``TrainConfig.appearance``)."""
+    """Term ``appearance`` (:meth:`dvr.appearance.ViewAppearance.regulariser`): pull of the per-view colour
+    transforms towards identity (mean squared log-gain; with ``TrainConfig.appearance``)."""
+
+
+@dataclass
+class RayBatchRender:
+    """One step's batch of pixels rendered by :meth:`Trainer.render_batch` (B rays, H of them hits)."""
+
+    origins: torch.Tensor
+    """(B, 3) ray origins."""
+    dirs: torch.Tensor
+    """(B, 3) unit ray directions."""
+    in_mask: torch.Tensor
+    """(B,) True where the pixel's mask says object."""
+    surface: SurfaceResult
+    """The march along every ray (status, depth, sphere entry/exit, depth of the largest logit)."""
+    hit: torch.Tensor
+    """(B,) True for rays that hit the surface."""
+    surface_points: torch.Tensor
+    """(H, 3) surface points of the hits at the implicit depth (differentiable w.r.t. the occupancy)."""
+    rendered_rgb: torch.Tensor
+    """(K, 3) rendered colour of the K hits inside the mask (after the view's colour transform, if any)."""
+    observed_rgb: torch.Tensor
+    """(K, 3) the photos' colours of those pixels."""
+
+
+@dataclass
+class SparseDepthRender:
+    """The step's sparse-depth rays rendered by :meth:`Trainer.render_sparse_depth`."""
+
+    rendered_depth: torch.Tensor
+    """(H,) implicit depth of the rays that hit (differentiable w.r.t. the occupancy)."""
+    known_depth: torch.Tensor
+    """(H,) their sparse SfM depth."""
+    missed_points: torch.Tensor
+    """(M, 3) points at the known depth of the rays that miss (pushed occupied)."""
+    free_points: torch.Tensor
+    """(F, 3) one random point per ray in front of its known depth (pushed free)."""
 
 
 @dataclass
@@ -158,7 +203,7 @@ def _atomic_save(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def save_model(path: Path, model, cfg: FieldConfig, scale_mat: np.ndarray, extra: dict | None = None,
+def save_model(path: Path, model: Field, cfg: FieldConfig, scale_mat: np.ndarray, extra: dict | None = None,
                frame: np.ndarray | None = None) -> None:
     """``scale_mat`` maps the field's frame to the SfM frame; ``frame`` maps it to the normalized frame of
     cameras.npz (identity when the field was trained in that frame); the support plane the field is clipped to
@@ -168,7 +213,7 @@ def save_model(path: Path, model, cfg: FieldConfig, scale_mat: np.ndarray, extra
                   "frame": np.eye(4) if frame is None else frame, "support": support, **(extra or {})}, path)
 
 
-def load_model(path: Path, device: torch.device):
+def load_model(path: Path, device: torch.device) -> tuple[Field, np.ndarray, np.ndarray]:
     """Load a field saved by :func:`save_model`: (field, scale_mat: field frame → SfM frame, frame: field frame →
     normalized frame of cameras.npz)."""
     ck = torch.load(path, map_location=device, weights_only=False)
@@ -203,8 +248,6 @@ class Trainer:
         self.model = make_field(cfg.field).to(self.device)
         self.model.set_support(data.cams.ground)  # nothing below the floor or table is object
         if self.coarse:
-            if not hasattr(self.model, "resize_base"):
-                raise ValueError(f"coarse_res needs field.kind 'grid', not '{cfg.field.kind}'")
             if not 0.0 < cfg.upsample_at < 1.0:
                 raise ValueError(f"upsample_at must lie in (0, 1), got {cfg.upsample_at}")
             self.model.resize_base(cfg.coarse_res)
@@ -237,9 +280,11 @@ class Trainer:
     # ----------------------------------------------------------------- checkpoints
     @property
     def ckpt_path(self) -> Path:
+        """Where the checkpoint for resuming lives."""
         return self.out / "checkpoint.pt"
 
     def save_checkpoint(self) -> None:
+        """Write everything an exact resume needs: step, weights, optimizer, schedule and every RNG state."""
         _atomic_save({
             "step": self.step, "elapsed": self.elapsed, "skipped": self.skipped,
             "field": self.model.state_dict(), "opt": self.opt.state_dict(), "sched": self.sched.state_dict(),
@@ -251,13 +296,16 @@ class Trainer:
 
     @property
     def upsample_step(self) -> int | None:
+        """The step at which the coarse occupancy grid is upsampled (None: one resolution throughout)."""
         c = self.cfg
         return int(round(c.upsample_at * c.iterations)) if self.coarse else None
 
     @property
     def coarse(self) -> bool:
+        """Coarse to fine: the field can change its resolution and 0 < coarse_res < field.base_res (a field that
+        cannot, the 'mlp' reference, trains at one resolution whatever coarse_res says)."""
         c = self.cfg
-        return c.field.kind == "grid" and 0 < c.coarse_res < c.field.base_res
+        return self.model.supports_resize and 0 < c.coarse_res < c.field.base_res
 
     def _resize_grid(self, res: int) -> None:
         """Upsample the occupancy grid and swap it into the optimizer (its Adam moments start afresh)."""
@@ -269,11 +317,13 @@ class Trainer:
         self.opt.state.pop(old, None)
 
     def try_resume(self) -> bool:
+        """Continue from ``checkpoint.pt`` when there is one (True), exactly where it stopped."""
         if not self.ckpt_path.exists():
             return False
         ck = torch.load(self.ckpt_path, map_location=self.device, weights_only=False)
-        if "base" in ck["field"] and ck["field"]["base"].shape != self.model.base.shape:
-            self._resize_grid(ck["field"]["base"].shape[-1] - 1)  # the checkpoint is past the upsampling
+        saved_res = self.model.grid_resolution_in(ck["field"])
+        if saved_res is not None and saved_res != self.model.grid_resolution:
+            self._resize_grid(saved_res)  # the checkpoint is past the upsampling
         self.model.load_state_dict(ck["field"])
         if self.appearance is not None and ck.get("appearance") is not None:
             self.appearance.load_state_dict(ck["appearance"])
@@ -290,6 +340,7 @@ class Trainer:
 
     # ----------------------------------------------------------------- one step
     def n_steps_at(self, step: int) -> int:
+        """Marching samples at ``step`` (linear from n_steps to n_steps_final)."""
         c = self.cfg
         a = step / max(1, c.iterations - 1)
         return int(round(c.n_steps + a * (c.n_steps_final - c.n_steps)))
@@ -312,97 +363,144 @@ class Trainer:
         if g is None or band <= 0 or pts.shape[0] == 0:
             return out
         hgt = plane_height(g, pts)
-        near = (hgt >= 0) & (hgt < band)
+        near = in_contact_band(hgt, band)
         if near.any():
             out[near] = ~self.carved(pts[near])
         return out
 
-    def losses(self, step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """The weighted loss of one batch and its terms and statistics (detached 0-d tensors: reading them waits for
-        the device, so the loop reads them only when it logs)."""
-        c, w, m = self.cfg, self.cfg.weights, self.model
-        o, d, rgb, mask, view = self.sampler.sample(c.batch_rays)
-        res = find_surface(m.occupancy, o, d, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
-                           jitter=c.jitter, generator=None)
-        st, inm = res.status, mask > 0.5
-        terms: dict[str, torch.Tensor] = {}
-        stats: dict[str, torch.Tensor] = {}
-        hit = st == HIT
-        occ_params = m.occupancy_parameters()
-
-        # hits: exact implicit depth → surface points → colour
-        hi = hit.nonzero().view(-1)
-        dh = implicit_depth(m.occupancy, occ_params, o[hi], d[hi], res.depth[hi], c.grad_eps)
-        ph = o[hi] + dh[:, None] * d[hi]
-        hm = inm[hi]
-        col = m.texture(ph[hm])
+    # ----------------------------------------------------------------- one batch: render, points, loss terms
+    def render_batch(self, step: int) -> RayBatchRender:
+        """Sample the step's pixels, find the surface along their rays (exact implicit depth at hits) and render the
+        colour of the hits inside the mask (through this photo's colour transform with ``appearance``)."""
+        c, m = self.cfg, self.model
+        origins, dirs, observed, mask, view = self.sampler.sample(c.batch_rays)
+        surface = find_surface(m.occupancy, origins, dirs, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
+                               jitter=c.jitter, generator=None)
+        hit = surface.status == HIT
+        hit_rays = hit.nonzero().view(-1)
+        hit_depth = implicit_depth(m.occupancy, m.occupancy_parameters(), origins[hit_rays], dirs[hit_rays],
+                                   surface.depth[hit_rays], c.grad_eps)
+        hit_points = origins[hit_rays] + hit_depth[:, None] * dirs[hit_rays]
+        in_mask = mask > 0.5
+        hit_in_mask = in_mask[hit_rays]
+        rendered = m.texture(hit_points[hit_in_mask])
         if self.appearance is not None:  # the shared colour as this photo's camera rendered it
-            col = self.appearance(col, view[hi][hm])
-            terms["appearance"] = self.appearance.regulariser()
-        terms["rgb"] = L.rgb_loss(col, rgb[hi][hm])
-        stats["psnr"] = L.psnr(col, rgb[hi][hm])
+            rendered = self.appearance(rendered, view[hit_rays][hit_in_mask])
+        return RayBatchRender(origins, dirs, in_mask, surface, hit, hit_points, rendered,
+                              observed[hit_rays][hit_in_mask])
 
-        # free space: outside-mask rays (hit point, or a random point of a missing ray); rays starting inside
-        # the object are wrong whatever the mask says (the object lies inside the unit sphere): entry → free
+    def freespace_points(self, batch: RayBatchRender) -> torch.Tensor:
+        """Points pushed free: the hit point of a ray outside the mask, or a random point of such a ray that misses
+        (one random draw per ray); rays starting inside the object are wrong whatever the mask says (the object lies
+        inside the unit sphere): their entry point. Points of the contact band one mask alone calls free are left
+        out (:meth:`contact_doubt`)."""
+        o, d, surface = batch.origins, batch.dirs, batch.surface
+        inside = surface.status == INSIDE
         u = torch.rand(o.shape[0], device=o.device)
-        rand_d = res.near + u * (res.far - res.near)
-        fs_d = torch.where(hit, res.depth, torch.where(st == INSIDE, res.near, rand_d))
-        fs = ((~inm) & (st != INSIDE)) | (st == INSIDE)
-        fs_pts = (o + fs_d[:, None] * d)[fs]
-        fs_pts = fs_pts[~self.contact_doubt(fs_pts)]
-        # occupancy: mask rays that miss → point of largest logit
-        oc = inm & (st == MISS)
-        oc_pts = (o + res.max_depth[:, None] * d)[oc]
-        if c.hull_gate and oc_pts.shape[0]:
+        random_depth = surface.near + u * (surface.far - surface.near)
+        depth = torch.where(batch.hit, surface.depth, torch.where(inside, surface.near, random_depth))
+        free_rays = ((~batch.in_mask) & ~inside) | inside
+        points = (o + depth[:, None] * d)[free_rays]
+        return points[~self.contact_doubt(points)]
+
+    def occupancy_points(self, batch: RayBatchRender) -> torch.Tensor:
+        """Points pushed occupied: for mask rays the rendering misses, the sample of largest logit (with
+        ``hull_gate``, only where the other masks do not carve it)."""
+        o, d, surface = batch.origins, batch.dirs, batch.surface
+        missed = batch.in_mask & (surface.status == MISS)
+        points = (o + surface.max_depth[:, None] * d)[missed]
+        if self.cfg.hull_gate and points.shape[0]:
             # a mask pixel whose best point the other masks carve is a mask error, not missing surface: pushing it
             # occupied against the carving grows floaters (a speck of floor kept in one view's automatic mask)
-            oc_pts = oc_pts[~self.carved(oc_pts)]
-        terms["freespace"] = torch.zeros((), device=o.device)
-        terms["occupancy"] = torch.zeros((), device=o.device)
+            points = points[~self.carved(points)]
+        return points
 
-        # sparse depth
-        terms["depth"] = torch.zeros((), device=o.device)
-        ds = self.sampler.sample_depth(c.depth_rays) if w.depth > 0 else None
-        dep_pts = torch.zeros(0, 3, device=o.device)
-        free_pts = torch.zeros(0, 3, device=o.device)
-        if ds is not None:
-            do, dd, dz = ds
-            dres = find_surface(m.occupancy, do, dd, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
-                                jitter=c.jitter)
-            dhit = dres.hit.nonzero().view(-1)
-            zd = implicit_depth(m.occupancy, occ_params, do[dhit], dd[dhit], dres.depth[dhit], c.grad_eps)
-            terms["depth"] = L.depth_loss(zd, dz[dhit])
-            dep_pts = (do + dz[:, None] * dd)[~dres.hit]  # missed: push occupancy at the known depth
-            # the ray is free in front of a sparse depth: a random point between the sphere entry and just
-            # before it (carves what the masks cannot: concavities, objects that fill the frame)
-            front = dz - c.depth_free_margin > dres.near
-            ud = torch.rand(dz.shape[0], device=o.device)
-            zf = dres.near + ud * (dz - c.depth_free_margin - dres.near).clamp_min(0.0)
-            free_pts = (do + zf[:, None] * dd)[front]
+    def render_sparse_depth(self, step: int) -> SparseDepthRender | None:
+        """The step's sparse-depth rays (None without sparse depth, or with the depth weight 0): their surface
+        (implicit depth at hits), the known-depth points of rays that miss, and a random free point in front of
+        each depth (carves what the masks cannot: concavities, objects that fill the frame)."""
+        c, m = self.cfg, self.model
+        sample = self.sampler.sample_depth(c.depth_rays) if c.weights.depth > 0 else None
+        if sample is None:
+            return None
+        o, d, known = sample
+        surface = find_surface(m.occupancy, o, d, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
+                               jitter=c.jitter)
+        hit_rays = surface.hit.nonzero().view(-1)
+        rendered = implicit_depth(m.occupancy, m.occupancy_parameters(), o[hit_rays], d[hit_rays],
+                                  surface.depth[hit_rays], c.grad_eps)
+        missed_points = (o + known[:, None] * d)[~surface.hit]  # missed: push occupancy at the known depth
+        in_front = known - c.depth_free_margin > surface.near
+        u = torch.rand(known.shape[0], device=o.device)
+        free_depth = surface.near + u * (known - c.depth_free_margin - surface.near).clamp_min(0.0)
+        free_points = (o + free_depth[:, None] * d)[in_front]
+        return SparseDepthRender(rendered, known[hit_rays], missed_points, free_points)
 
-        # carving: random points of the unit sphere outside the visual hull
-        cp = torch.randn(c.carve_points, 3, device=o.device)
-        cp = cp / cp.norm(dim=-1, keepdim=True) * torch.rand(c.carve_points, 1, device=o.device) ** (1 / 3)
-        carve_pts = cp[self.carved(cp) & ~self.below_support(cp)]  # below it the field is clipped already
+    def carve_points(self, device: torch.device) -> torch.Tensor:
+        """Random points of the unit sphere outside the visual hull (and above the support plane, below which the
+        field is clipped already)."""
+        n = self.cfg.carve_points
+        p = torch.randn(n, 3, device=device)
+        p = p / p.norm(dim=-1, keepdim=True) * torch.rand(n, 1, device=device) ** (1 / 3)
+        return p[self.carved(p) & ~self.below_support(p)]
 
-        # one field evaluation for all classification points
-        nf, no, nd = fs_pts.shape[0], oc_pts.shape[0] + dep_pts.shape[0], free_pts.shape[0]
-        allp = torch.cat([fs_pts, oc_pts, dep_pts, free_pts, carve_pts])
-        lg = m.occupancy(allp) if allp.shape[0] else torch.zeros(0, device=o.device)
-        terms["freespace"] = L.freespace_loss(lg[:nf])
-        terms["occupancy"] = L.occupancy_loss(lg[nf : nf + no])
-        terms["depth_free"] = L.freespace_loss(lg[nf + no : nf + no + nd])
-        terms["carve"] = L.freespace_loss(lg[nf + no + nd :])
+    def classification_logits(self, point_sets: dict[str, list[torch.Tensor]],
+                              device: torch.device) -> dict[str, torch.Tensor]:
+        """Occupancy logits of several named point sets (each a list of (M_i, 3) tensors) by one field evaluation,
+        split back per name."""
+        parts = [p for ps in point_sets.values() for p in ps]
+        every = torch.cat(parts)
+        logits = self.model.occupancy(every) if every.shape[0] else torch.zeros(0, device=device)
+        out, start = {}, 0
+        for name, ps in point_sets.items():
+            n = sum(p.shape[0] for p in ps)
+            out[name] = logits[start : start + n]
+            start += n
+        return out
 
-        terms["tv"] = m.tv_loss()
-        if w.normal > 0 and ph.shape[0] > 0:
-            p_s = ph.detach()
-            n1 = finite_difference_normals(m.occupancy, p_s)
-            n2 = finite_difference_normals(m.occupancy, p_s + 0.01 * torch.randn_like(p_s))
-            terms["normal"] = L.normal_smoothness_loss(n1, n2)
-        total = sum(getattr(w, k) * v for k, v in terms.items())
-        stats.update({k: v.detach() for k, v in terms.items()})
-        stats["hit_frac"] = hit.float().mean()
+    def normal_loss(self, surface_points: torch.Tensor) -> torch.Tensor:
+        """Normal smoothness at the hit points: finite-difference normals there vs at randomly jittered points."""
+        p = surface_points.detach()
+        n_at = finite_difference_normals(self.model.occupancy, p)
+        n_near = finite_difference_normals(self.model.occupancy, p + 0.01 * torch.randn_like(p))
+        return L.normal_smoothness_loss(n_at, n_near)
+
+    def losses(self, step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The weighted loss of one batch and its terms and statistics (detached 0-d tensors: reading them waits for
+        the device, so the loop reads them only when it logs). Each term is named after its :class:`LossWeights`
+        field and logged unweighted; the total is Σ weight × term in the order below."""
+        w = self.cfg.weights
+        # random draws, in this order: pixels + march jitter, free-space depths, sparse depth, carving, normals
+        batch = self.render_batch(step)
+        dev = batch.origins.device
+        free_pts, occupied_pts = self.freespace_points(batch), self.occupancy_points(batch)
+        sparse = self.render_sparse_depth(step)
+        empty = torch.zeros(0, 3, device=dev)
+        logits = self.classification_logits({
+            "freespace": [free_pts],
+            "occupancy": [occupied_pts, empty if sparse is None else sparse.missed_points],
+            "depth_free": [empty if sparse is None else sparse.free_points],
+            "carve": [self.carve_points(dev)],
+        }, dev)
+
+        terms: dict[str, torch.Tensor] = {}
+        if self.appearance is not None:
+            terms["appearance"] = self.appearance.regulariser()
+        terms["rgb"] = L.rgb_loss(batch.rendered_rgb, batch.observed_rgb)
+        terms["freespace"] = L.freespace_loss(logits["freespace"])
+        terms["occupancy"] = L.occupancy_loss(logits["occupancy"])
+        terms["depth"] = torch.zeros((), device=dev) if sparse is None else \
+            L.depth_loss(sparse.rendered_depth, sparse.known_depth)
+        terms["depth_free"] = L.freespace_loss(logits["depth_free"])
+        terms["carve"] = L.freespace_loss(logits["carve"])
+        terms["tv"] = self.model.tv_loss()
+        if w.normal > 0 and batch.surface_points.shape[0] > 0:
+            terms["normal"] = self.normal_loss(batch.surface_points)
+        total = sum(getattr(w, name) * term for name, term in terms.items())
+
+        stats = {"psnr": L.psnr(batch.rendered_rgb, batch.observed_rgb)}
+        stats.update({name: term.detach() for name, term in terms.items()})
+        stats["hit_frac"] = batch.hit.float().mean()
         return total, stats
 
     def train_step(self, step: int) -> dict[str, torch.Tensor]:
@@ -429,6 +527,7 @@ class Trainer:
 
     # ----------------------------------------------------------------- loop
     def preview(self, tag: str) -> None:
+        """Write ``preview_<tag>.png``: a photo next to the field's rendering of it (views in turn)."""
         v = self.step % len(self.data.names)
         w, h = self.data.view_size(v)
         img, _ = render_view(self.model, self.data, v, scale=min(1.0, 256 / max(w, h)))

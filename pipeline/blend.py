@@ -10,14 +10,18 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import cv2
 import numpy as np
 
-from .cameras_config import TextureConfig
+from dvr.cameras import Cameras
+
 from .seams import fit_seam_offsets, texel_offsets_planar
 from .view_select import chart_weights, face_adjacency, select_views
+
+if TYPE_CHECKING:  # texture.py imports this module
+    from .texture import TextureConfig
 
 
 def depth_edges(depth: np.ndarray, tol: float, px: int) -> np.ndarray:
@@ -127,8 +131,8 @@ class ViewSampler:
     channel by channel (``pts`` is the transpose of a (3, M) array).
     """
 
-    def __init__(self, pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams, depths: list[np.ndarray],
-                 cfg: TextureConfig, maps: tuple | None = None):
+    def __init__(self, pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams: Cameras,
+                 depths: list[np.ndarray], cfg: TextureConfig, maps: tuple | None = None):
         if pts.ndim != 2 or pts.shape[1] != 3 or nrm.shape != pts.shape:
             raise ValueError(f"ViewSampler: pts {pts.shape} and nrm {nrm.shape} must both have shape (M, 3)")
         if not (len(images) == len(depths) == len(cams)):
@@ -457,7 +461,7 @@ def _bake_texels(sampler: ViewSampler, cfg: TextureConfig, offsets: np.ndarray |
     return np.clip(col, 0.0, 1.0), wsum, tier == 2
 
 
-def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams, depths: list[np.ndarray],
+def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams: Cameras, depths: list[np.ndarray],
          cfg: TextureConfig, surface: TexelSurface | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Colours (M, 3) in [0, 1], total weights (M,) of texel points seen by the photos, and which texels only the
     silhouette band sees (M,) bool (their colour may be background: the caller gives them the fallback colour).
@@ -480,6 +484,7 @@ def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams, depth
     col, wsum, band = np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool)
 
     def bake_chunk(start: int) -> None:
+        """Bake the texels start … start + BAKE_CHUNK into ``col``, ``wsum``, ``band``."""
         s = slice(start, start + BAKE_CHUNK)
         part = None if surface is None else surface._replace(
             texel_vertices=surface.texel_vertices[s], texel_bary=surface.texel_bary[s],

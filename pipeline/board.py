@@ -44,9 +44,11 @@ class BoardSpec:
 
     @property
     def size_m(self) -> tuple[float, float]:
+        """(width, height) of the board's grid of squares in metres."""
         return self.squares[0] * self.square_m, self.squares[1] * self.square_m
 
     def describe(self) -> str:
+        """The board in words (messages, ``board.json``)."""
         return (f"{self.squares[0]}×{self.squares[1]} ChArUco, {1000 * self.square_m:g} mm squares, "
                 f"{1000 * self.marker_m:g} mm markers, {self.dictionary}")
 
@@ -78,7 +80,7 @@ def board_spec(squares, square_mm: float, marker_mm: float, dictionary: str, whe
 def spec_from_config(cfg) -> BoardSpec:
     """The board of a CamerasConfig (fields ``board_*``)."""
     return board_spec(cfg.board_squares, cfg.board_square_mm, cfg.board_marker_mm, cfg.board_dictionary,
-                      "--cameras-cfg.board-squares/-square-mm/-marker-mm/-dictionary")
+                      "--cameras.board-squares/-square-mm/-marker-mm/-dictionary")
 
 
 def make_board(spec: BoardSpec):
@@ -178,13 +180,16 @@ class BoardFit:
 
     @property
     def matrix(self) -> np.ndarray:
+        """4×4 similarity SfM frame → board frame (metres): x ↦ scale · R x + t."""
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = self.scale * self.R, self.t
         return T
 
     def info(self, n_views: int) -> dict:
+        """What ``board.json`` records of the fit (``n_views``: the photos searched)."""
         return {**self.spec.info(), "views": self.views, "of_views": n_views, "corners": self.corners,
-                "metres_per_sfm_unit": self.scale, "residual_mm": round(self.residual_mm, 3), "sfm_to_metric": self.matrix.tolist(), "units": "metres",
+                "metres_per_sfm_unit": self.scale, "residual_mm": round(self.residual_mm, 3),
+                "sfm_to_metric": self.matrix.tolist(), "units": "metres",
                 "frame": "board: origin at its centre, z up, x along its rows of squares"}
 
 

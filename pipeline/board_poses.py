@@ -140,6 +140,7 @@ def board_info(cams: BoardCameras, spec, n_photos: int, why_not_sfm: str) -> dic
 
 
 def write_board_json(root: Path, info: dict) -> None:
+    """Write ``info`` (:func:`board_info`) as ``board.json`` in the workspace ``root``."""
     (root / "board.json").write_text(json.dumps(info, indent=1))
 
 

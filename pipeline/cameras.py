@@ -12,23 +12,98 @@ from __future__ import annotations
 import shutil
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
 
-from dvr.cameras import decompose_projection, save_cameras, sphere_frame
+from dvr.cameras import decompose_projection, project_points, save_cameras, sphere_frame
 
 from .board import board_support, spec_from_config, use_board
-from .board_poses import (BoardCameras, board_info, board_plane, require_board_cameras, write_board_json,
-                          write_board_views)
-from .cameras_config import CamerasConfig
-from .config import config_hash
-from .photos import PHOTO_EXTS, is_readable, read_photo, read_upright
+from .board_poses import (
+    BoardCameras,
+    board_info,
+    board_plane,
+    require_board_cameras,
+    write_board_json,
+    write_board_views,
+)
+from .photos import (
+    PHOTO_EXTS,
+    downscale,
+    is_readable,
+    read_photo,
+)
 from .pose_sanity import axes_convergence, pose_sanity
 from .sfm import ladder, model_stats, run_rung, shortfalls, triangulate_at
 from .support import SupportPlane, find_support
-from .workspace import StageError, Workspace
+from .workspace import Done, Job, StageError, Workspace
+
+
+@dataclass
+class CamerasConfig:
+    """Camera estimation (stage ``cameras``)."""
+
+    max_side_sfm: int = 1600
+    """Longest image side SfM works on (photos are downscaled to it, never upscaled)."""
+    max_side: int = 400
+    """Longest side of the training images written to images/."""
+    matching: Literal["auto", "exhaustive", "sequential"] = "auto"
+    """Pairs to match: 'auto' = exhaustive up to 80 images, sequential (with loop closure off) beyond."""
+    start_rung: Literal["default", "guided", "dsp", "relaxed", "global", "merge"] = "default"
+    """First rung of the SfM ladder: default SIFT → guided matching → DSP-SIFT + affine shape → relaxed mapper →
+    global mapper → merge (the best model so far absorbs the photos it lacks). A rung runs only when the one before
+    left the model short (a photo unregistered, a poor reprojection error or track length, too few points per
+    view) or with poses that fail the sanity check."""
+    last_rung: Literal["default", "guided", "dsp", "relaxed", "global", "merge"] = "merge"
+    """Last rung of the SfM ladder ('default': one COLMAP run, as before the ladder)."""
+    max_reprojection_error: float = 1.0
+    """A model whose mean reprojection error (px) exceeds this is short: the ladder climbs."""
+    max_bad_pose_fraction: float = 0.3
+    """A model in which more than this fraction of the views fail the pose sanity check (axes that miss the
+    object the others converge on, or two sides of a symmetric scene merged) is rejected as a whole; fewer such
+    views are dropped from it (and listed as unregistered)."""
+    seed: int = 0
+    """Random seed of COLMAP's mapper."""
+    triangulate_given: bool = True
+    """With given cameras (--cameras FILE): match SIFT features and triangulate them at the given poses, so the
+    later stages get sparse depth, the support plane and SfM tracks as after our own SfM (about 10 s for 36 photos
+    of 400×300); off: the given cameras alone, no points."""
+    camera_model: str = "SIMPLE_RADIAL"
+    """COLMAP camera model estimated before undistortion."""
+    pinhole_tolerance: float = 0.1
+    """After SfM the pinhole model (distortion 0, focal length and poses re-adjusted) replaces the fitted lens
+    distortion when its mean reprojection error is at most this fraction larger: on object-centric captures
+    distortion and focal length trade off (a pinhole render came out with k = 0.11 and an 11 % long focal length
+    at the same error). Negative: keep whatever SfM fits."""
+    max_features: int = 8192
+    """SIFT features per image on the first rung (later rungs: at least 16 k)."""
+    min_registered_fraction: float = 0.5
+    """Fail when fewer images than this fraction register (the list of unregistered images is printed)."""
+    radius_margin: float = 1.3
+    """Unit sphere radius = margin × robust object radius from the sparse points (the points sample the object
+    sparsely: at 1.1 the corners of a plate and the cow's hooves fell outside, and masks and hull cut them)."""
+    min_track_length: int = 3
+    """Sparse points used for normalisation need at least this many observations."""
+    support: bool = True
+    """Find the surface the object stands on (a robust plane fit of the SfM points: horizontal, under the cameras,
+    under the point they converge on, around the object); every later stage then treats it as background and
+    nothing below it as object. Without one (held, hung, plain backdrop), nothing changes."""
+    board: bool = True
+    """Look for a printed ChArUco board in the photos (``python -m pipeline board board.png`` prints one). When its
+    corners are seen, the SfM frame becomes the board's: cameras.npz, points and meshes in metres (origin at the
+    board's centre, z up), the board's plane is the support plane, and ``board.json`` says what was found. No
+    board seen: nothing changes."""
+    board_squares: tuple[int, int] = (5, 7)
+    """Squares of the printed board (columns, rows)."""
+    board_square_mm: float = 35.0
+    """Side of one board square as printed (mm): measure it with a ruler; the metric scale is exactly as good."""
+    board_marker_mm: float = 26.0
+    """Side of one ArUco marker of the board as printed (mm), smaller than a square."""
+    board_dictionary: str = "DICT_4X4_50"
+    """ArUco dictionary of the board's markers (an OpenCV name, e.g. DICT_4X4_50, DICT_5X5_100)."""
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -84,10 +159,7 @@ def normalization(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, centers
     if support is not None:
         points = points[support.height(points) > 2 * support.tolerance]
     if len(points):
-        ph = np.concatenate([points, np.ones((len(points), 1))], 1)
-        x = np.einsum("nij,mj->nmi", Ps, ph)
-        z = x[..., 2]
-        uv = x[..., :2] / np.where(np.abs(z) < 1e-12, 1e-12, z)[..., None]
+        uv, z = project_points(Ps, points, blas=False)
         inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 1] >= 0) & (uv[..., 0] < sizes[:, None, 0]) & \
                  (uv[..., 1] < sizes[:, None, 1])
         central = inside.mean(0) >= 0.75
@@ -104,21 +176,26 @@ def normalization(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, centers
 
 
 # ----------------------------------------------------------------------------- SfM
-def prepare_sfm_input(ws: Workspace, photos: list[Path], cfg: CamerasConfig) -> tuple[Path, list[list[str]]]:
-    """Upright copies of the photos (longest side ≤ max_side_sfm) in ``sfm/input``, grouped by size."""
+def prepare_sfm_input(ws: Workspace, photos: list[Path], cfg: CamerasConfig
+                      ) -> tuple[Path, list[list[str]], list[tuple[tuple[int, int], tuple[int, int]]]]:
+    """Upright copies of the photos (longest side ≤ max_side_sfm) in ``sfm/input``, grouped by size; per photo the
+    (height, width) of the upright photo and of its copy."""
     sfm = ws.root / "sfm"
     if sfm.exists():
         shutil.rmtree(sfm)
     inp = sfm / "input"
     inp.mkdir(parents=True)
     groups: dict[tuple[int, int], list[str]] = {}
+    shapes = []
     for p in photos:
-        img = read_upright(p, cfg.max_side_sfm)
-        if img is None:
+        full = read_photo(p)
+        if full is None:
             raise StageError(f"{p}: unreadable image; remove it from the folder")
+        img = downscale(full, cfg.max_side_sfm)
         cv2.imwrite(str(inp / f"{p.stem}.png"), img)
         groups.setdefault(img.shape[:2], []).append(f"{p.stem}.png")
-    return inp, list(groups.values())
+        shapes.append((full.shape[:2], img.shape[:2]))
+    return inp, list(groups.values()), shapes
 
 
 def _drop_views(rec, names: set[str]) -> None:
@@ -130,7 +207,7 @@ def _drop_views(rec, names: set[str]) -> None:
 def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     """Climb the SfM ladder (:mod:`pipeline.sfm`) until a rung registers every photo with sane poses; returns
     (model, folder of the images SfM saw, summary of the rungs tried)."""
-    inp, groups = prepare_sfm_input(ws, photos, cfg)
+    inp, groups, _ = prepare_sfm_input(ws, photos, cfg)
     names = [p.stem for p in photos]
     work = ws.root / "sfm" / "ladder"
     work.mkdir()
@@ -174,22 +251,8 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
             best = (key, rec, rung.name, database)
         if not short:
             break
-    if best is None:
-        if rejected:
-            views = ", ".join(sorted(Path(n).stem for n in rejected)[:8])
-            raise StageError(f"{inp.parent.parent}: SfM poses are inconsistent for every setting tried (views {views}"
-                             f"{' …' if len(rejected) > 8 else ''}): a symmetric or repetitive object or floor — "
-                             "put a textured mat (a newspaper) under the object, or add texture around it")
-        raise StageError(f"{inp}: SfM found no model (too few matches): photograph the object with more overlap "
-                         "(≥ 60 % between neighbours), more texture, and sharp, well-lit images")
-    rec = best[1]
-    if rejected and rec.num_reg_images() < max(3, cfg.min_registered_fraction * len(names)):
-        views = ", ".join(sorted(Path(n).stem for n in rejected)[:8])
-        raise StageError(f"{inp.parent.parent}: SfM registered {rec.num_reg_images()}/{len(names)} photos with "
-                         f"credible poses; other settings placed views {views}{' …' if len(rejected) > 8 else ''} "
-                         "where they cannot be: a symmetric or repetitive object or floor — put a textured mat (a "
-                         "newspaper) under the object, or add texture around it")
-    rec, notes = prefer_pinhole(rec, cfg.pinhole_tolerance)
+    _require_credible(None if best is None else best[1], rejected, inp, len(names), cfg.min_registered_fraction)
+    rec, notes = prefer_pinhole(best[1], cfg.pinhole_tolerance)
     for note in notes:
         print(f"cameras: {note}")
     best_dir = ws.root / "sfm" / "sparse" / "best"
@@ -197,6 +260,24 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     rec.write(best_dir)
     shutil.copy(best[3], ws.root / "sfm" / "database.db")  # the database of the model kept, where COLMAP puts it
     return rec, inp, {"rung": best[2], "rungs": tried}
+
+
+def _require_credible(rec, rejected: dict, inp: Path, n_photos: int, min_fraction: float) -> None:
+    """The SfM ladder's failures as a StageError: no model at all (``rec`` None), or, when models were rejected for
+    poses that cannot be (``rejected``), a kept model that registers fewer than ``min_fraction`` of the photos."""
+    views = ", ".join(sorted(Path(n).stem for n in rejected)[:8])
+    if rec is None:
+        if rejected:
+            raise StageError(f"{inp.parent.parent}: SfM poses are inconsistent for every setting tried (views {views}"
+                             f"{' …' if len(rejected) > 8 else ''}): a symmetric or repetitive object or floor — "
+                             "put a textured mat (a newspaper) under the object, or add texture around it")
+        raise StageError(f"{inp}: SfM found no model (too few matches): photograph the object with more overlap "
+                         "(≥ 60 % between neighbours), more texture, and sharp, well-lit images")
+    if rejected and rec.num_reg_images() < max(3, min_fraction * n_photos):
+        raise StageError(f"{inp.parent.parent}: SfM registered {rec.num_reg_images()}/{n_photos} photos with "
+                         f"credible poses; other settings placed views {views}{' …' if len(rejected) > 8 else ''} "
+                         "where they cannot be: a symmetric or repetitive object or floor — put a textured mat (a "
+                         "newspaper) under the object, or add texture around it")
 
 
 def prefer_pinhole(rec, tolerance: float):
@@ -238,9 +319,12 @@ def prefer_pinhole(rec, tolerance: float):
 
 
 def report_sfm(rec, names: list[str], cfg: CamerasConfig) -> dict:
+    """Print and return the model's summary (registered photos, reprojection error, track length, points); a
+    StageError when fewer than ``min_registered_fraction`` of the photos registered."""
     reg = {rec.image(i).name.rsplit(".", 1)[0] for i in rec.reg_image_ids()}
     missing = [n for n in names if n not in reg]
-    info = {"registered": len(reg), "total": len(names), "mean_reprojection_error": rec.compute_mean_reprojection_error(),
+    info = {"registered": len(reg), "total": len(names),
+            "mean_reprojection_error": rec.compute_mean_reprojection_error(),
             "mean_track_length": rec.compute_mean_track_length(), "points": rec.num_points3D(), "unregistered": missing}
     print(f"cameras: registered {len(reg)}/{len(names)}, mean reprojection error "
           f"{info['mean_reprojection_error']:.3f} px, mean track length {info['mean_track_length']:.2f}, "
@@ -291,7 +375,7 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
         Ks.append(K), Rs.append(M[:3, :3]), ts.append(M[:3, 3]), sizes.append((nw, nh)), kept.append(name)
     Ks, Rs, ts, sizes = np.stack(Ks), np.stack(Rs), np.stack(ts), np.asarray(sizes, float)
     pts, cols = [], []
-    for pid, p in urec.points3D.items():
+    for p in urec.points3D.values():
         if p.track.length() >= cfg.min_track_length:
             pts.append(p.xyz), cols.append(p.color)
     pts = np.asarray(pts).reshape(-1, 3)
@@ -377,7 +461,7 @@ def import_cameras(ws: Workspace, photos: list[Path], cam_file: Path, cfg: Camer
     for p, (K, R, t) in zip(photos, given):
         full = read_photo(p)
         h, w = full.shape[:2]
-        img = read_upright(p, cfg.max_side)
+        img = downscale(full, cfg.max_side)
         nh, nw = img.shape[:2]
         cv2.imwrite(str(ws.images / f"{p.stem}.png"), img)
         Ks.append(np.diag([nw / w, nh / h, 1.0]) @ K), Rs.append(R), ts.append(t)
@@ -392,13 +476,9 @@ def triangulate_given(ws: Workspace, photos: list[Path], cfg: CamerasConfig, giv
     the given poses (:func:`pipeline.sfm.triangulate_at`), so sparse depth, the support plane and the masks' tracks
     exist too; a given scale_mat stays the object's sphere (else it is found as after SfM). None (and a warning)
     when too few points come out."""
-    inp, _ = prepare_sfm_input(ws, photos, cfg)
+    inp, _, shapes = prepare_sfm_input(ws, photos, cfg)
     names = [p.stem for p in photos]
-    Ks = []
-    for p, (K, _, _) in zip(photos, given):
-        h, w = read_photo(p).shape[:2]
-        ih, iw = cv2.imread(str(inp / f"{p.stem}.png"), cv2.IMREAD_UNCHANGED).shape[:2]
-        Ks.append(np.diag([iw / w, ih / h, 1.0]) @ K)
+    Ks = [np.diag([iw / w, ih / h, 1.0]) @ K for (K, _, _), ((h, w), (ih, iw)) in zip(given, shapes)]
     t0 = time.perf_counter()
     try:
         rec = triangulate_at(ws.root / "sfm" / "given", inp, names, np.stack(Ks), np.stack([g[1] for g in given]),
@@ -447,20 +527,11 @@ def import_colmap_model(ws: Workspace, photos: list[Path], images: Path, model: 
     return info
 
 
-def run(ws: Workspace, images: Path | None, cfg: CamerasConfig, cameras: Path | None = None,
-        force: bool = False) -> bool:
-    if images is None:
-        raise StageError(f"{ws.root}: the cameras stage needs --images DIR (the photos)")
-    images = Path(images).resolve()
-    if ws.root == images or images in ws.root.parents:
-        raise StageError(f"{ws.root}: the workspace must not be the photo folder or inside it; choose another OUT")
-    h = config_hash({"cfg": cfg.__dict__, "images": str(images), "cameras": str(cameras)})
-    outs = [ws.images, ws.cameras, ws.root / "points.ply"]
-    ins = [images] + ([Path(cameras)] if cameras else [])
-    if not force and ws.up_to_date("cameras", h, ins, outs):
-        print(f"cameras: up to date ({ws.cameras})")
-        return False
-    ws.clear("cameras")
+def run(job: Job) -> Done:
+    """Stage ``cameras`` (called by :func:`pipeline.stages.run_stage`): the photos in ``job.sources.images`` posed by
+    the SfM ladder, by given cameras (``job.sources.given_cameras``: a cameras.npz or a COLMAP model) or by a
+    printed board → images/, cameras.npz, points.ply, sfm/."""
+    ws, cfg, images, given = job.ws, job.cfg, job.sources.images, job.sources.given_cameras
     ws.root.mkdir(parents=True, exist_ok=True)
     photos, skipped = list_photos(images)
     for s in skipped:
@@ -468,11 +539,10 @@ def run(ws: Workspace, images: Path | None, cfg: CamerasConfig, cameras: Path | 
     if len(photos) < 3:
         raise StageError(f"{images}: {len(photos)} usable photo(s); at least 3 are needed (20–60 around the object is "
                          "typical)")
-    t0 = time.perf_counter()
-    if cameras is not None and Path(cameras).is_dir():
-        info = import_colmap_model(ws, photos, images, Path(cameras), cfg)
-    elif cameras is not None:
-        info = import_cameras(ws, photos, Path(cameras), cfg)
+    if given is not None and given.is_dir():
+        info = import_colmap_model(ws, photos, images, given, cfg)
+    elif given is not None:
+        info = import_cameras(ws, photos, given, cfg)
     else:
         try:
             rec, inp, ladder_info = run_sfm(ws, photos, cfg)
@@ -481,6 +551,5 @@ def run(ws: Workspace, images: Path | None, cfg: CamerasConfig, cameras: Path | 
             info.update(export_model(ws, rec, inp, cfg, [p.stem for p in photos]))
         except StageError as exc:  # SfM cannot pose them (a symmetric object): a printed board in view still can
             info = export_board_cameras(ws, photos, cfg, require_board_cameras(photos, cfg, exc), str(exc))
-    ws.mark_done("cameras", h, time.perf_counter() - t0, {k: v for k, v in info.items() if k != "views"})
     print(f"cameras: {len(info['views'])} views → {ws.cameras}")
-    return True
+    return Done({k: v for k, v in info.items() if k != "views"})

@@ -1,4 +1,5 @@
-"""One typed config per stage, bundled in :class:`Config`, loaded from YAML presets in ``configs/``.
+"""The config tree: one typed config per stage (each defined next to the code it configures), bundled in
+:class:`Config` (built from the stage table), loaded from YAML presets in ``configs/``.
 
 A preset only lists what differs from the defaults below; unknown keys are an error naming the key.
 The command-line options of every stage are generated from these dataclasses (their docstrings are the
@@ -8,64 +9,19 @@ The command-line options of every stage are generated from these dataclasses (th
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import types
 import typing
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
-from typing import Literal
 
 import yaml
 
-from dvr.trainer import TrainConfig
+from .stages import STAGES
 
-from .cameras_config import CamerasConfig, DepthConfig, MasksConfig, TextureConfig
-
-
-@dataclass
-class MeshConfig:
-    """Isosurface extraction and cleaning (stage ``mesh``)."""
-
-    resolution: int = 256
-    """Marching-cubes cells per axis over [-1, 1] (fine level)."""
-    coarse_factor: int = 4
-    """The coarse level is resolution / coarse_factor; only cells near the surface are refined."""
-    refine_steps: int = 2
-    """Newton steps moving vertices onto the level set (0: off)."""
-    min_component_ratio: float = 0.02
-    """Drop connected components with fewer faces than this fraction of the largest."""
-    footprint: float = 0.03
-    """Height above the support plane (working-sphere radii) below which the mesh is the vertical extrusion of its
-    cross-section at that height: the object meets its floor or table with the footprint of what stands just above,
-    where automatic masks lose the lowest strip to the contact shadow (the lying book from photos: 23.4 → 24.3 dB
-    held-out; cow, jar and DTU within ±0.03 dB). 0: off; no effect without a support plane."""
-    smooth_iterations: int = 0
-    """Taubin smoothing iterations of the clean mesh (0: off)."""
-    max_faces: int = 40000
-    """Decimate the clean mesh to at most this many faces (quadric edge collapse)."""
-    frame: Literal["sfm", "normalized"] = "sfm"
-    """Frame of the written meshes: 'sfm' (the frame of cameras.npz) or 'normalized' (unit sphere)."""
-    device: str = "auto"
-    """'auto' (CUDA when present), 'cpu' or 'cuda'."""
-
-
-@dataclass
-class Config:
-    """All stage configs."""
-
-    cameras: CamerasConfig = field(default_factory=CamerasConfig)
-    """Stage ``cameras``."""
-    masks: MasksConfig = field(default_factory=MasksConfig)
-    """Stage ``masks``."""
-    depth: DepthConfig = field(default_factory=DepthConfig)
-    """Stage ``depth``."""
-    train: TrainConfig = field(default_factory=TrainConfig)
-    """Stage ``train``."""
-    mesh: MeshConfig = field(default_factory=MeshConfig)
-    """Stage ``mesh``."""
-    texture: TextureConfig = field(default_factory=TextureConfig)
-    """Stage ``texture``."""
+Config = dataclasses.make_dataclass(
+    "Config", [(s.name, s.options, field(default_factory=s.options)) for s in STAGES if s.options is not None])
+Config.__doc__ = """All stage configs: a field per stage of :data:`pipeline.stages.STAGES` that has options, named
+after it (``cfg.train.iterations``; YAML ``train: {iterations: …}``; CLI ``--train.iterations``)."""
 
 
 def _resolve(tp):
@@ -116,7 +72,9 @@ def load_config(path: str | Path | None) -> Config:
         raise ValueError(f"{path}: {exc}") from exc
 
 
-def config_hash(obj) -> str:
-    """Stable hash of a stage config (for the up-to-date check)."""
-    d = dataclasses.asdict(obj) if dataclasses.is_dataclass(obj) else obj
-    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+def config_from_args(preset: str | Path | None, options: list[str]) -> Config:
+    """The config a command line gives: the YAML ``preset`` (defaults without one) overridden by ``options`` in
+    the CLI's spelling (``["--train.iterations", "750", "--texture.view-selection"]``)."""
+    import tyro
+
+    return tyro.cli(Config, default=load_config(preset), args=list(options), prog="options")

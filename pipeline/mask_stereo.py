@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from dvr.cameras import Cameras, pixel_rays, project, sphere_bounds
+from dvr.cameras import Cameras, pixel_centers, pixel_rays, project, sphere_bounds
 from dvr.data import pad_stack
 
 from .support import GROUND_BAND
@@ -68,8 +68,7 @@ def stereo_costs(images: torch.Tensor, cams: Cameras, far: np.ndarray, n_depths:
     imgs = images.permute(0, 3, 1, 2).contiguous()  # (N, 3, H, W)
     nb = neighbours(cams.centers, n_neighbors)
     K, R, t, P = (torch.from_numpy(a).to(dev, torch.float32) for a in (cams.K, cams.R, cams.t, cams.P))
-    jj, ii = torch.meshgrid(torch.arange(W, device=dev) + 0.5, torch.arange(H, device=dev) + 0.5, indexing="xy")
-    uv_ref = torch.stack([jj, ii], -1).view(-1, 2)
+    uv_ref = pixel_centers(H, W, device=dev).reshape(-1, 2)
     c_in = torch.full((N, H, W), float("inf"), device=dev)
     c_out = torch.full((N, H, W), float("inf"), device=dev)
     ground = None if cams.ground is None else torch.as_tensor(cams.ground, dtype=torch.float32, device=dev)

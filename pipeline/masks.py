@@ -23,29 +23,61 @@ import json
 import os
 import shutil
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from dvr.cameras import Cameras, load_cameras, plane_height, sphere_bounds
-from dvr.data import list_images, pad_stack
+from dvr.cameras import Cameras, load_cameras, plane_height, project_points, sphere_bounds, to_normalized
+from dvr.data import list_images, pad_stack, read_mask
 from dvr.hull import hull_logits
 
-from .cameras_config import MasksConfig
 from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
-from .config import config_hash
 from .raycast import mesh_intersector, pixel_center_rays
 from .support import GROUND_BAND
-from .workspace import StageError, Workspace
+from .workspace import Done, Job, StageError, Workspace
+
+
+@dataclass
+class MasksConfig:
+    """Object masks (stage ``masks``)."""
+
+    hull_res: int = 128
+    """Resolution of the visual hull used for multi-view consistency."""
+    carve_min_views: int = 2
+    """A point is background only if at least this many views see it outside their mask."""
+    vote_rounds: int = 2
+    """Rounds of multi-view voting (hull of the current masks → GrabCut inside its silhouette)."""
+    grabcut_iters: int = 5
+    """GrabCut iterations per pass."""
+    seed_radius: int = 2
+    """Radius (px) of the disc drawn around each projected seed point."""
+    band_px: int = 3
+    """Half-width of the uncertain band around the hull silhouette in the refinement pass."""
+    user_threshold: int = 127
+    """User masks: grey values above this are object."""
+    stereo: bool = True
+    """Seed GrabCut with plane-sweep stereo evidence: photo-consistent inside the object sphere → object,
+    beyond it → background (works where the object has the backdrop's colours)."""
+    stereo_scale: float = 0.5
+    """Image scale the plane sweep runs at (its labels are only seeds)."""
+    stereo_depths: int = 32
+    """Depth hypotheses of the plane sweep (uniform in inverse depth)."""
+    stereo_ratio: float = 0.5
+    """A pixel is labelled when its best cost on one side is below this fraction of the other side's."""
+    speck_fraction: float = 0.001
+    """Holes and islands of an automatic mask smaller than this fraction of the image are filled / dropped (seed
+    noise); larger holes stay."""
 
 
 # ----------------------------------------------------------------------------- user masks
 def import_user_masks(ws: Workspace, names: list[str], sizes: list[tuple[int, int]], mask_dir: Path,
                       cfg: MasksConfig) -> dict:
+    """Masks given by the user (``mask_dir``, matched by stem), checked to be binary and of the photo's aspect,
+    resized to the images (``sizes``: (width, height) per name) into masks/; confidence 1 each."""
     if not mask_dir.is_dir():
         raise StageError(f"{mask_dir}: not a folder; pass --masks DIR with one mask per photo (same file name)")
     files = {p.stem: p for p in mask_dir.iterdir() if p.is_file()}
@@ -172,9 +204,9 @@ def seed_labels(cams: Cameras, i: int, h: int, w: int, pts_n: np.ndarray | None,
     lab[~region] = cv2.GC_BGD
     if pts_n is not None and vis is not None and len(vis):
         p = pts_n[vis]
-        x = (cams.P[i] @ np.concatenate([p, np.ones((len(p), 1))], 1).T).T
-        ok = x[:, 2] > 1e-9
-        uv = np.round(x[ok, :2] / x[ok, 2:] - 0.5).astype(int)
+        uv, z = project_points(cams.P[i], p)
+        ok = z > 1e-9
+        uv = np.round(uv[ok] - 0.5).astype(int)
         rad = np.linalg.norm(p[ok], axis=1)
         on_support = plane_height(cams.ground, p[ok]) < GROUND_BAND if cams.ground is not None else \
             np.zeros(len(rad), bool)
@@ -212,9 +244,10 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     return out
 
 
-def background_depths(cams, pts_n: np.ndarray | None, obs: dict | None, names: list[str]) -> np.ndarray:
+def background_depths(cams: Cameras, pts_n: np.ndarray | None, obs: dict | None, names: list[str]) -> np.ndarray:
     """Per view, the ray depth the stereo sweep reaches: 1.1 × the 95th percentile of the distances to the
-    background points (beyond ``BACKGROUND_RADIUS``) the view observes; 3 × the distance to the sphere centre without."""
+    background points (beyond ``BACKGROUND_RADIUS``) the view observes; 3 × the distance to the sphere centre
+    without."""
     far = 3.0 * np.linalg.norm(cams.centers, axis=1)
     if pts_n is None or obs is None:
         return far
@@ -227,12 +260,13 @@ def background_depths(cams, pts_n: np.ndarray | None, obs: dict | None, names: l
 
 
 def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> dict:
+    """Automatic masks of the BGR images ``imgs`` (module docstring: geometric and stereo seeds, GrabCut, multi-view
+    votes) into masks/; per name the confidence (IoU of the first GrabCut mask with the hull's silhouette)."""
     cams = load_cameras(ws.cameras, n_views=len(names))
     xyz, obs = _tracks(ws, names)
     pts_n = None
     if xyz is not None and len(xyz):
-        S = cams.scale_mat
-        pts_n = (xyz - S[:3, 3]) / S[0, 0]
+        pts_n = to_normalized(xyz, cams.scale_mat, uniform=True)
     stereo = None
     if cfg.stereo and len(names) >= 3:
         stereo = stereo_seed_labels(imgs, cams, background_depths(cams, pts_n, obs, names), cfg.stereo_scale,
@@ -255,7 +289,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
         # vote: the hull of the current masks (carving needs carve_min_views) is an upper bound in every view
         sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views)
         labs = []
-        for i, img in enumerate(imgs):
+        for i in range(len(imgs)):
             # outside the silhouette: background (an object seed there is outvoted by the views that carved that
             # space); inside, the seeds stay hard and GrabCut decides the rest (e.g. a hole the hull could not
             # carve yet)
@@ -287,9 +321,9 @@ def support_outline(cams: Cameras, i: int, n: int = 180) -> np.ndarray | None:
     e2 = np.cross(nrm, e1)
     th = np.linspace(0, 2 * np.pi, n)
     pts = -d * nrm + np.sqrt(1 - d * d) * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
-    x = (cams.P[i] @ np.concatenate([pts, np.ones((n, 1))], 1).T).T
-    ok = x[:, 2] > 1e-6
-    return x[ok, :2] / x[ok, 2:] - 0.5 if ok.sum() > 1 else None
+    uv, z = project_points(cams.P[i], pts)
+    ok = z > 1e-6
+    return uv[ok] - 0.5 if ok.sum() > 1 else None
 
 
 def write_overlays(ws: Workspace, names: list[str], imgs: list[np.ndarray], cams: Cameras | None = None) -> None:
@@ -298,7 +332,7 @@ def write_overlays(ws: Workspace, names: list[str], imgs: list[np.ndarray], cams
     out = ws.masks / "overlays"
     out.mkdir(exist_ok=True)
     for i, (n, img) in enumerate(zip(names, imgs)):
-        m = cv2.imread(str(ws.masks / f"{n}.png"), cv2.IMREAD_GRAYSCALE) > 127
+        m = read_mask(ws.masks / f"{n}.png") > 0
         ov = img.copy()
         ov[~m] = (ov[~m] * 0.3).astype(np.uint8)
         cnt, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
@@ -309,18 +343,12 @@ def write_overlays(ws: Workspace, names: list[str], imgs: list[np.ndarray], cams
         cv2.imwrite(str(out / f"{n}.jpg"), ov, [cv2.IMWRITE_JPEG_QUALITY, 90])
 
 
-def run(ws: Workspace, cfg: MasksConfig, masks: Path | None = None, force: bool = False) -> bool:
-    ws.require(ws.images, ws.cameras, hint="run the cameras stage first")
+def run(job: Job) -> Done:
+    """Stage ``masks`` (called by :func:`pipeline.stages.run_stage`): the user's masks (``job.sources.masks_dir``)
+    checked and resized, or automatic ones → masks/*.png, masks/overlays/, masks/confidence.json."""
+    ws, cfg, masks = job.ws, job.cfg, job.sources.masks_dir
     paths = list_images(ws.images)
     names = [p.stem for p in paths]
-    h = config_hash({"cfg": cfg.__dict__, "masks": str(masks)})
-    ins = [ws.images, ws.cameras] + ([Path(masks)] if masks else [])
-    outs = [ws.masks / f"{n}.png" for n in names]
-    if not force and ws.up_to_date("masks", h, ins, outs):
-        print(f"masks: up to date ({ws.masks})")
-        return False
-    ws.clear("masks")
-    t0 = time.perf_counter()
     if ws.masks.exists():
         shutil.rmtree(ws.masks)
     ws.masks.mkdir(parents=True)
@@ -334,7 +362,6 @@ def run(ws: Workspace, cfg: MasksConfig, masks: Path | None = None, force: bool 
     low = [n for n, c in conf.items() if c < 0.8]
     if low:
         print(f"masks: low confidence for {', '.join(low)} (see {ws.masks / 'overlays'})", file=sys.stderr)
-    ws.mark_done("masks", h, time.perf_counter() - t0, {"mean_confidence": float(np.mean(list(conf.values())))})
     print(f"masks: {len(names)} masks, mean confidence {np.mean(list(conf.values())):.3f} → {ws.masks}")
-    return True
+    return Done({"mean_confidence": float(np.mean(list(conf.values())))})
 

@@ -59,8 +59,11 @@ def is_readable(path: Path) -> bool:
 def read_upright(path: Path, max_side: int) -> np.ndarray | None:
     """:func:`read_photo` downscaled (INTER_AREA) so its longest side ≤ ``max_side`` (never upscaled)."""
     img = read_photo(path)
-    if img is None:
-        return None
+    return None if img is None else downscale(img, max_side)
+
+
+def downscale(img: np.ndarray, max_side: int) -> np.ndarray:
+    """``img`` downscaled (INTER_AREA) so its longest side ≤ ``max_side``; itself when it already is."""
     h, w = img.shape[:2]
     s = min(1.0, max_side / max(h, w))
     if s < 1.0:

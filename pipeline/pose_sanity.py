@@ -33,6 +33,8 @@ from .photos import read_photo
 
 @dataclass
 class View:
+    """One registered image of an SfM model: its pose (world → camera R, t), intrinsics K and size."""
+
     name: str
     R: np.ndarray  # world → camera
     t: np.ndarray
@@ -42,6 +44,7 @@ class View:
 
     @property
     def center(self) -> np.ndarray:
+        """Camera centre in the world frame."""
         return -self.R.T @ self.t
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .workspace import Workspace
+from .workspace import Done, Job, Workspace
 
 VIEWER_JS = Path(__file__).resolve().parents[1] / "node_modules" / "@google" / "model-viewer" / "dist" / \
     "model-viewer.min.js"
@@ -75,8 +75,8 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
     """
     import trimesh
 
-    from dvr.cameras import load_cameras
-    from dvr.data import list_images
+    from dvr.cameras import load_cameras, to_sfm
+    from dvr.data import list_images, read_mask, read_rgb
     from dvr.metrics import masked_psnr
 
     from .texture import render_textured
@@ -94,14 +94,13 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
     for img_dir, mask_dir, cam_file, tag in sets:
         paths = list_images(img_dir)
         cams = load_cameras(cam_file, n_views=len(paths))
-        S = cams.scale_mat
         for i in np.linspace(0, len(paths) - 1, min(n, len(paths))).round().astype(int):
-            photo = cv2.cvtColor(cv2.imread(str(paths[i])), cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+            photo = read_rgb(paths[i])
             h, w = photo.shape[:2]
             img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, cams.K[i], cams.R[i],
-                                       cams.centers[i] @ S[:3, :3].T + S[:3, 3], w, h)
+                                       to_sfm(cams.centers[i], cams.scale_mat), w, h)
             mp = mask_dir / f"{paths[i].stem}.png"
-            m = cv2.imread(str(mp), 0) > 127 if mp.exists() else hit
+            m = read_mask(mp) > 0 if mp.exists() else hit
             m = m | hit
             p = masked_psnr(img, photo, m)
             pair = (np.concatenate([photo, img], 1) * 255).round().astype(np.uint8)
@@ -165,6 +164,7 @@ def appearance_section(ws: Workspace) -> str:
 
 
 def build(ws: Workspace) -> str:
+    """The self-contained HTML of the report: stage table, capture, masks, training curves, renders, viewer."""
     secs = ws.seconds()
     stamps = {}
     for p in sorted(ws.stages.glob("*.json")) if ws.stages.exists() else []:
@@ -174,7 +174,9 @@ def build(ws: Workspace) -> str:
     parts = [f"<h1>Reconstruction report: {html.escape(ws.root.name)}</h1>",
              f"<p>generated {time.strftime('%Y-%m-%d %H:%M')}</p>", "<h2>Stages</h2><table><tr><th>stage</th>"
              "<th>seconds</th><th>details</th></tr>"]
-    for st in ("cameras", "masks", "depth", "train", "mesh", "texture"):
+    from .stages import STAGES
+
+    for st in (s.name for s in STAGES):
         if st in stamps:
             det = {k: v for k, v in stamps[st].items() if k not in ("config", "seconds", "finished")}
             parts.append(f"<tr><td>{st}</td><td>{secs.get(st, 0):.1f}</td><td><code>"
@@ -217,13 +219,12 @@ def build(ws: Workspace) -> str:
            f"<style>{style}</style></head><body>{''.join(parts)}</body></html>"
 
 
-def run(ws: Workspace, force: bool = False) -> bool:
-    ws.require(ws.root, hint="run the earlier stages first")
-    t0 = time.perf_counter()
-    doc = build(ws)
-    out = ws.root / "report.html"
+def run(job: Job) -> Done:
+    """Stage ``report`` (called by :func:`pipeline.stages.run_stage`, always): report.html from what the
+    workspace holds so far."""
+    doc = build(job.ws)
+    out = job.ws.root / "report.html"
     out.write_text(doc)
-    ws.mark_done("report", "-", time.perf_counter() - t0)
     print(f"report: {out} ({len(doc) / 1e6:.1f} MB)")
-    return True
+    return Done()
 

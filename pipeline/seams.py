@@ -172,15 +172,22 @@ def fit_seam_offsets(sample_view: np.ndarray, sample_texel: np.ndarray, sample_c
                 np.add.at(acc[j], t, delta[j])
             corrected[:, s] = new
             out[v, systems[v].vertices] = vertex_offsets
+    _remove_common_shift(out, systems, weight, corrected, colour)
+    return out
+
+
+def _remove_common_shift(out: np.ndarray, systems: list, weight: np.ndarray, corrected: np.ndarray,
+                         colour: np.ndarray) -> None:
+    """In ``out`` (n_views, n_verts, 3): the weighted mean change of all samples' colours (``colour`` → ``corrected``,
+    (3, N)) taken off every fitted view's offsets, and the vertices a view never sees given its mean offset."""
     shift = [np.dot(weight, c - c0) / max(float(weight.sum()), 1e-12) for c, c0 in zip(corrected, colour)]
-    for v, system in enumerate(systems):  # the common shift removed; vertices the view never sees: its mean
+    for v, system in enumerate(systems):
         if system is None:
             continue
         out[v, system.vertices] -= np.asarray(shift, np.float32)
-        rest = np.ones(n_verts, bool)
+        rest = np.ones(out.shape[1], bool)
         rest[system.vertices] = False
         out[v, rest] = out[v, system.vertices].mean(0)
-    return out
 
 
 def _by_view(view: np.ndarray, texel: np.ndarray, colour: np.ndarray, weight: np.ndarray):

@@ -49,10 +49,12 @@ class Rung:
 
     @property
     def features_key(self) -> str:
+        """Name of the feature database this rung extracts into (rungs with the same features share it)."""
         return f"f{self.max_features}{'-dsp' if self.dsp else ''}"
 
     @property
     def matches_key(self) -> str:
+        """Name of the match database this rung matches into (rungs with the same matches share it)."""
         return f"{self.features_key}{'-guided' if self.guided else ''}"
 
 

@@ -13,9 +13,10 @@ of the object. The support is found as the plane that
 * has (almost) nothing below it near the object (``max_below`` of the points there): a table hides what lies under
   it, while a plane through the object itself (window sills, a row of roof tiles) has points on both sides,
 * lies around the object, on several sides (its inliers within 2.5 × the object's median footprint radius of the
-  foot of the convergence point fall in at least ``min_sectors`` of 8 sectors) — a shelf or a backdrop behind the object does not —, and spreads at least about
-  as wide as the object stands (median distance from the foot ≥ 0.6 × that of the object's own points) — a plane
-  tangent to the object's rounded bottom holds only a small cap of its points.
+  foot of the convergence point fall in at least ``min_sectors`` of 8 sectors) — a shelf or a backdrop behind the
+  object does not —, and spreads at least about as wide as the object stands (median distance from the foot ≥ 0.6 ×
+  that of the object's own points) — a plane tangent to the object's rounded bottom holds only a small cap of its
+  points.
 
 No such plane (an object held, hung, on a plain backdrop or a plain turntable top): ``None``, and every stage
 behaves as without a support.
@@ -26,7 +27,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
 
 GROUND_BAND = 0.03
 """Height above the support plane (normalized frame: unit-sphere radii) below which a point or a depth belongs to
@@ -46,6 +46,7 @@ class SupportPlane:
 
     @property
     def vector(self) -> np.ndarray:
+        """The plane as (4,): (n, d) with n·x + d = 0."""
         return np.append(self.normal, self.offset)
 
     def height(self, points: np.ndarray) -> np.ndarray:
@@ -140,6 +141,7 @@ def find_support(points: np.ndarray, centers: np.ndarray, R: np.ndarray, target:
         return None
 
     def plausible(n, d):
+        """:func:`_plausible` of the plane n·x + d = 0 for this capture."""
         return _plausible(n, d, near, centers, target, scale, tol, min_cameras_above, max_height, max_below)
 
     min_count = max(min_inliers, min_fraction * len(near))

@@ -5,9 +5,10 @@
    barycentrics, 3-D point and normal.
 2. Every view renders a depth map of the mesh (z-buffer, pipeline/zbuffer.py: the ray depth at every pixel centre,
    as ray casting gives it); a texel is visible in a view when its projection's depth agrees with that map.
-3. Colour (:mod:`pipeline.blend`) = weighted mean of the visible views' bilinear samples, weight = cos(angle)^p / distance² × a
-   feather towards the image border; the weights are sharpened so the best views dominate. Colours come from
-   3-D points, so texels on both sides of a UV seam (same 3-D point) get the same colour: seams match.
+3. Colour (:mod:`pipeline.blend`) = weighted mean of the visible views' bilinear samples, weight =
+   cos(angle)^p / distance² × a feather towards the image border; the weights are sharpened so the best views
+   dominate. Colours come from 3-D points, so texels on both sides of a UV seam (same 3-D point) get the same
+   colour: seams match.
 4. Texels no photo sees take the trained texture field's colour; a gutter is dilated around every chart so
    mip-maps do not bleed background into the surface.
 """
@@ -16,31 +17,108 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
 import torch
 import trimesh
-import xatlas
 
-from dvr.cameras import load_cameras
-from dvr.data import list_images
+from dvr.cameras import Cameras, load_cameras, project_points, to_normalized, to_sfm, transform_points
+from dvr.data import list_images, read_rgb
 from dvr.device import resolve_device
+from dvr.fields import Field, evaluate_in_chunks
 from dvr.trainer import load_model
 
 from .blend import TexelSurface, bake
-from .cameras_config import TextureConfig
-from .config import config_hash
 from .raycast import mesh_intersector, pixel_center_rays
-from .workspace import StageError, Workspace
+from .workspace import Done, Job, StageError
 from .zbuffer import ray_depth_map
+
+
+@dataclass
+class TextureConfig:
+    """UV texturing from the photos (stage ``texture``)."""
+
+    size: int = 2048
+    """Largest texture side in texels (the atlas is sized by ``texel_density`` up to this)."""
+    texel_density: float = 1.5
+    """Texels per unit length on the object per photo pixel, where the photos see it best: the texture holds
+    what the photos hold (400×300 photos need no 2048² atlas; 1.0 cost 0.16 dB held-out PSNR against 1.5 on the
+    book scene, 2048² gained 0.1 dB in 7× the time); 0: always ``size``."""
+    padding: int = 4
+    """Texels between charts in the atlas."""
+    gutter: int = 8
+    """Texels of colour dilated around every chart."""
+    angle_power: float = 4.0
+    """Sharpness of the view weighting by the cosine between normal and viewing direction."""
+    min_cos: float = 0.1
+    """Views seeing a surface more grazing than this cosine are ignored."""
+    depth_tolerance: float = 0.01
+    """Visibility test: |texel depth − rendered depth| below this (normalized units) counts as visible."""
+    edge_px: int = 1
+    """Photo pixels within this distance of a depth discontinuity or silhouette count as edge pixels."""
+    edge_weight: float = 0.02
+    """Weight factor of samples that use an edge pixel (they blend foreground and background in real photos)."""
+    silhouette_px: int = 0
+    """Photo pixels within this distance of the mesh's silhouette against the background (where the mesh is a
+    little too large they show the background: the fringe) count only for texels nothing else sees, and those
+    texels then take the fallback colour (texture field, else the nearest seen texel). 0: off, they count as edge
+    pixels. 1 removes the fringe on a 3 % too large mesh but costs 0.7 dB at one held-out view of the exact-geometry
+    cow (its silhouette pixels are right there), so it is off by default until measured on real captures."""
+    edge_fallback_only: bool = True
+    """Samples that use an edge pixel count only for texels that no clean sample sees (else they blend in at
+    ``edge_weight``): background colour beside a silhouette does not reach a texel another view sees cleanly."""
+    outlier_threshold: float = 0.1
+    """Photo-consistency: a second blending pass weights every sample by 1 / (1 + (d / this)²), d its RMS colour
+    distance to the texel's robust colour (per channel, the mean without the largest and smallest sample), so a
+    highlight, shadow or occluder one view alone sees does not reach the texture; 0: off."""
+    outlier_reject: float = 3.0
+    """Samples farther than this × ``outlier_threshold`` from the robust colour are dropped where 3 or more views
+    see the texel."""
+    sharpness_power: float = 0.5
+    """Prefer sharp views: weights × (1 + c / ``sharpness_floor``)^this, c the photo's local contrast per unit
+    length on the surface (blurred Sobel magnitude × focal / distance; lower in a defocused or shaken view); 0: off."""
+    sharpness_floor: float = 2.0
+    """Contrast (grey levels of 1 per normalized unit) below which a view counts as flat: weak texture barely
+    changes the weights."""
+    view_selection: bool = False
+    """Discrete view selection (:mod:`pipeline.view_select`): one photo per face, the sharpest, most frontal, closest
+    photo-consistent one, under a Potts smoothness so charts come from few views, blended with its neighbours' views
+    at chart borders; the other views keep ``selection_floor`` of their weight. Off: every view blends by weight."""
+    selection_smoothness: float = 1.0
+    """Potts weight: cost of a label change between two adjacent faces, in units of −log of the data term's ratio
+    to the face's best view (1: a view e times weaker is taken to spare one border edge)."""
+    selection_sharpness: float = 2.0
+    """Sharpness power of the selection's data term (as ``sharpness_power`` for the blend; the selection's choice
+    between two views rests on it). Needs ``sharpness_power`` > 0 (the sharpness maps)."""
+    selection_rings: int = 2
+    """Rings of neighbouring faces over which the views of two charts blend at their border (0: hard seams)."""
+    selection_floor: float = 0.02
+    """Weight factor of the views a face did not select (they colour texels the chosen view does not see)."""
+    seam_levelling: bool = True
+    """Global seam levelling: per view an RGB offset per mesh vertex, solved in least squares (scipy sparse) so that
+    overlapping views agree, added to the view's samples before blending (exposure, white balance and lighting
+    steps between views do not become seams)."""
+    seam_smoothness: float = 10.0
+    """Weight of equal offsets at the two ends of a mesh edge, per sample of data (larger: smoother offsets)."""
+    seam_zero_pull: float = 0.01
+    """Weight of the pull of every offset towards 0, per sample of data (keeps the problem well posed)."""
+    seam_fit_texels: int = 200000
+    """Texels (drawn with a fixed seed) the offsets are fitted on; all texels get them."""
+    frame: Literal["sfm", "normalized"] = "sfm"
+    """Frame of the textured outputs: 'sfm' (that of cameras.npz) or 'normalized'."""
+    device: str = "auto"
+    """Device of the texture field used for unseen texels."""
 
 
 def make_atlas(verts: np.ndarray, faces: np.ndarray, size: int, padding: int):
     """xatlas: (vmapping, faces into the new vertices, uvs in [0, 1])."""
+    import xatlas  # here, not at the top: the config tree imports this module
+
     atlas = xatlas.Atlas()
     atlas.add_mesh(verts.astype(np.float32), faces.astype(np.uint32))
     po = xatlas.PackOptions()
@@ -114,7 +192,7 @@ def _barycentrics(uv: np.ndarray, corner: np.ndarray, px: np.ndarray, py: np.nda
     return bary
 
 
-def depth_maps(mesh: trimesh.Trimesh, cams, sizes: list[tuple[int, int]]) -> list[np.ndarray]:
+def depth_maps(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]]) -> list[np.ndarray]:
     """Per view, the ray depth of the first mesh hit at every pixel centre (inf where none): z-buffer rasterisation
     (:func:`pipeline.zbuffer.ray_depth_map`), ray casting for a view with a triangle across its camera plane."""
     verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
@@ -160,7 +238,7 @@ def dilate_gutter(tex: np.ndarray, valid: np.ndarray, n: int) -> tuple[np.ndarra
     return tex, grown
 
 
-def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field=None,
+def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field: Field | None = None,
                 field_frame: np.ndarray | None = None) -> np.ndarray:
     """Colours of the texels no photo sees: the trained texture field's when there is one (``field_frame``:
     4×4 map of the field's frame to the frame of ``pts``), else the colour of the nearest seen texel in 3-D
@@ -169,11 +247,10 @@ def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field=None
         dev = next(field.parameters()).device
         q = pts[unseen]
         if field_frame is not None:
-            inv = np.linalg.inv(field_frame)
-            q = q @ inv[:3, :3].T + inv[:3, 3]
+            q = transform_points(np.linalg.inv(field_frame), q)
         with torch.no_grad():
             q = torch.from_numpy(q).float().to(dev)
-            return torch.cat([field.texture(q[s : s + 65536]) for s in range(0, len(q), 65536)]).cpu().numpy()
+            return evaluate_in_chunks(field.texture, q, 65536, trailing_shape=(3,)).cpu().numpy()
     if unseen.all():
         return np.full((int(unseen.sum()), 3), 0.5)
     from scipy.spatial import cKDTree
@@ -182,20 +259,20 @@ def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field=None
     return col[~unseen][nn]
 
 
-def photo_texel_density(mesh: trimesh.Trimesh, cams, sizes: list[tuple[int, int]], min_cos: float = 0.3) -> float:
+def photo_texel_density(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]],
+                        min_cos: float = 0.3) -> float:
     """Photo pixels per unit length on the surface where the photos see it best: per face, the largest
     focal / distance over the views that see it from the front (cos > ``min_cos``) inside the image; the
     area-weighted median over faces (0 when no view sees any face)."""
     cen, nrm, area = mesh.triangles_center, mesh.face_normals, mesh.area_faces
     best = np.zeros(len(cen))
-    hom = np.concatenate([cen, np.ones((len(cen), 1))], 1)
+    P = cams.P
     for i, (w, h) in enumerate(sizes):
         view = cams.centers[i] - cen
         dist = np.linalg.norm(view, axis=1).clip(1e-12)
-        x = hom @ cams.P[i].T
-        z = np.where(np.abs(x[:, 2]) < 1e-12, 1e-12, x[:, 2])
-        u, v = x[:, 0] / z, x[:, 1] / z
-        ok = (x[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h) & ((nrm * view).sum(1) / dist > min_cos)
+        uv, z = project_points(P[i], cen)
+        u, v = uv[:, 0], uv[:, 1]
+        ok = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h) & ((nrm * view).sum(1) / dist > min_cos)
         best = np.maximum(best, np.where(ok, cams.K[i][0, 0] / dist, 0.0))
     seen = best > 0
     if not seen.any():
@@ -205,7 +282,7 @@ def photo_texel_density(mesh: trimesh.Trimesh, cams, sizes: list[tuple[int, int]
     return float(best[seen][order][np.searchsorted(cum, 0.5 * cum[-1])])
 
 
-def atlas_size(mesh: trimesh.Trimesh, cams, sizes: list[tuple[int, int]], cfg: TextureConfig,
+def atlas_size(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]], cfg: TextureConfig,
                utilisation: float = 0.6) -> int:
     """Side of the texture: about ``cfg.texel_density`` texels per photo pixel on the object (the surface area at
     :func:`photo_texel_density`, over xatlas' typical utilisation), a multiple of 128 in [256, ``cfg.size``];
@@ -217,8 +294,8 @@ def atlas_size(mesh: trimesh.Trimesh, cams, sizes: list[tuple[int, int]], cfg: T
     return int(min(cfg.size, max(256, 128 * np.ceil(side / 128))))
 
 
-def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams, cfg: TextureConfig,
-                 field=None, field_frame: np.ndarray | None = None):
+def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams: Cameras, cfg: TextureConfig,
+                 field: Field | None = None, field_frame: np.ndarray | None = None):
     """Normalized-frame mesh → (new verts, new faces, uvs, texture (side, side, 3) float, stats); the side follows
     the photos' resolution on the object (:func:`atlas_size`)."""
     base = trimesh.Trimesh(verts_n, faces, process=False)
@@ -317,20 +394,13 @@ def undo_appearance(images: list[np.ndarray], names: list[str], looks: dict) -> 
     return out
 
 
-def run(ws: Workspace, cfg: TextureConfig, force: bool = False) -> bool:
+def run(job: Job) -> Done:
+    """Stage ``texture`` (called by :func:`pipeline.stages.run_stage`): the clean mesh UV-unwrapped and baked from
+    the photos (the texture field for texels no photo sees) → mesh/textured.obj/.mtl/.png and mesh/textured.glb."""
+    ws, cfg = job.ws, job.cfg
     clean = ws.mesh / "clean.ply"
     final = ws.model / "final.pt"
-    ws.require(clean, hint="run the mesh stage first")
-    ws.require(ws.images, ws.cameras, hint="run the cameras stage first")
-    h = config_hash(cfg)
-    outs = [ws.mesh / f"textured.{e}" for e in ("obj", "mtl", "png", "glb")]
     looks = ws.model / "appearance.json"  # per-view exposure and white balance fitted in training
-    ins = [clean, ws.images, ws.cameras] + [p for p in (final, looks) if p.exists()]
-    if not force and ws.up_to_date("texture", h, ins, outs):
-        print(f"texture: up to date ({outs[-1]})")
-        return False
-    ws.clear("texture")
-    t0 = time.perf_counter()
     paths = list_images(ws.images)
     cams = load_cameras(ws.cameras, n_views=len(paths))
     S = cams.scale_mat
@@ -343,17 +413,15 @@ def run(ws: Workspace, cfg: TextureConfig, force: bool = False) -> bool:
         mesh_frame = "sfm"
     verts_n = np.asarray(m.vertices, np.float64)
     if mesh_frame == "sfm":
-        verts_n = (verts_n - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T
-    images = [cv2.cvtColor(cv2.imread(str(p), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
-              for p in paths]
+        verts_n = to_normalized(verts_n, S)
+    images = [read_rgb(p) for p in paths]
     if looks.exists():
         images = undo_appearance(images, [p.stem for p in paths], json.loads(looks.read_text()))
     field, _, field_frame = load_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
     nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame)
-    out_v = nv @ S[:3, :3].T + S[:3, 3] if cfg.frame == "sfm" else nv
+    out_v = to_sfm(nv, S) if cfg.frame == "sfm" else nv
     export_textured(ws.mesh, out_v, nf, uvs, tex)
     stats.pop("filled")
-    ws.mark_done("texture", h, time.perf_counter() - t0, stats)
     print(f"texture: {tex.shape[0]}² atlas, {100 * (1 - stats['unseen_frac']):.1f} % of texels from photos → "
           f"{ws.mesh / 'textured.glb'}")
-    return True
+    return Done(stats)

@@ -70,11 +70,16 @@ def select_views(scores: np.ndarray, adjacency: sp.csr_matrix, smoothness: float
     return labels
 
 
+def _with_self(adjacency: sp.csr_matrix, dtype) -> sp.csr_matrix:
+    """``adjacency`` + I (every face also its own neighbour: one ring of averaging), the identity in ``dtype``."""
+    return (adjacency + sp.identity(adjacency.shape[0], dtype, format="csr")).tocsr()
+
+
 def _ring_mean(scores: np.ndarray, adjacency: sp.csr_matrix, rings: int) -> np.ndarray:
     """``scores`` (F, V) averaged ``rings`` times over each face and its neighbours, each view over the faces it sees
     (0 stays 0: a view that does not see a face is not made to)."""
     seen = (scores > 0).astype(np.float64)
-    step = (adjacency + sp.identity(len(scores), np.float64, format="csr")).tocsr()
+    step = _with_self(adjacency, np.float64)
     count = np.maximum(np.asarray(step @ seen), 1.0)
     out = scores.astype(np.float64)
     for _ in range(rings):
@@ -95,7 +100,7 @@ def chart_weights(labels: np.ndarray, n_views: int, adjacency: sp.csr_matrix, ri
     rows = np.flatnonzero(labels >= 0)
     soft = np.zeros((n, n_views), np.float32)
     soft[rows, labels[rows]] = 1.0
-    step = (adjacency + sp.identity(n, np.float32, format="csr")).tocsr()
+    step = _with_self(adjacency, np.float32)
     for _ in range(rings):
         soft = np.asarray(step @ soft, np.float32)
         soft /= np.maximum(soft.sum(1, keepdims=True), 1e-12)  # the labels' share among the faces near each face

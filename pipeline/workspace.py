@@ -7,10 +7,14 @@ stamp last, so a killed stage is never taken as done.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 
 class StageError(Exception):
@@ -18,39 +22,49 @@ class StageError(Exception):
 
 
 class Workspace:
+    """A reconstruction's folder: the paths every stage reads and writes (docs/design.md, "Workspace"), and the
+    stamps that make stages resumable and idempotent."""
+
     def __init__(self, root: str | Path):
         self.root = Path(root).resolve()
 
-    # paths of DESIGN.md
     @property
     def images(self) -> Path:
+        """Training images written by the cameras stage (upright, resized)."""
         return self.root / "images"
 
     @property
     def masks(self) -> Path:
+        """Object masks (white = object), one PNG per image."""
         return self.root / "masks"
 
     @property
     def depth(self) -> Path:
+        """Sparse depth per view (depth/<view>.npz)."""
         return self.root / "depth"
 
     @property
     def cameras(self) -> Path:
+        """Cameras of every image (IDR/DVR convention; docs/design.md, Conventions)."""
         return self.root / "cameras.npz"
 
     @property
     def model(self) -> Path:
+        """Checkpoints, log, appearance and the final model of the train stage."""
         return self.root / "model"
 
     @property
     def mesh(self) -> Path:
+        """Raw, clean and textured meshes."""
         return self.root / "mesh"
 
     @property
     def stages(self) -> Path:
+        """Stamps of the finished stages (<stage>.json)."""
         return self.root / ".stages"
 
     def require(self, *paths: Path, hint: str) -> None:
+        """StageError naming the first missing path and ``hint`` (what to run first)."""
         for p in paths:
             if not p.exists():
                 raise StageError(f"{p}: missing; {hint}")
@@ -60,6 +74,7 @@ class Workspace:
         return self.stages / f"{stage}.json"
 
     def up_to_date(self, stage: str, cfg_hash: str, inputs: list[Path], outputs: list[Path]) -> bool:
+        """Whether ``stage`` finished with this config hash, its outputs exist and no input is newer than its stamp."""
         stamp = self._stamp(stage)
         if not stamp.exists():
             return False
@@ -73,6 +88,7 @@ class Workspace:
         return all(newest_mtime(p) <= t for p in inputs)
 
     def mark_done(self, stage: str, cfg_hash: str, seconds: float, extra: dict | None = None) -> None:
+        """Write the stage's stamp (atomically, after its outputs): config hash, seconds and details."""
         self.stages.mkdir(parents=True, exist_ok=True)
         rec = {"config": cfg_hash, "seconds": round(seconds, 3), "finished": time.time(), **(extra or {})}
         tmp = self._stamp(stage).with_suffix(".tmp")
@@ -87,9 +103,11 @@ class Workspace:
             return None
 
     def clear(self, stage: str) -> None:
+        """Remove the stage's stamp (it is no longer done)."""
         self._stamp(stage).unlink(missing_ok=True)
 
     def seconds(self) -> dict[str, float]:
+        """Seconds of every finished stage, by name."""
         out = {}
         for p in sorted(self.stages.glob("*.json")) if self.stages.exists() else []:
             try:
@@ -97,6 +115,52 @@ class Workspace:
             except (OSError, ValueError, KeyError):
                 pass
         return out
+
+
+def config_hash(obj) -> str:
+    """Stable hash of a stage config (for the up-to-date check)."""
+    d = dataclasses.asdict(obj) if dataclasses.is_dataclass(obj) else obj
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+@dataclass
+class Sources:
+    """Paths a user gives a run besides the workspace; read, never modified."""
+
+    images: Path | None = None
+    """Folder of photos (stage ``cameras``)."""
+    masks_dir: Path | None = None
+    """Folder of user masks named like the photos (stage ``masks``); automatic masks without it."""
+    given_cameras: Path | None = None
+    """Given cameras instead of SfM (stage ``cameras``): an IDR/DVR/NeuS cameras.npz (one world_mat_i per photo in
+    sorted order) or a COLMAP model folder."""
+
+
+@dataclass
+class Job:
+    """One run of one stage: its workspace, its config section, the user's sources and the bookkeeping's verdict."""
+
+    ws: Workspace
+    """The workspace."""
+    cfg: Any
+    """The stage's config section (None for a stage without options)."""
+    sources: Sources = field(default_factory=Sources)
+    """Photos, user masks, given cameras."""
+    force: bool = False
+    """Redo the stage even when up to date (the train stage also discards its checkpoint)."""
+    config_hash: str = "-"
+    """Hash of the config section and the sources the stage reads (its stamp records it)."""
+    stop_after: int | None = None
+    """Train stage: stop after this many steps without finishing (tests of resuming); None: run to the end."""
+
+
+@dataclass
+class Done:
+    """What a finished stage body returns: the details its stamp records, and its seconds (None: the wall time of
+    the body, measured by :func:`pipeline.stages.run_stage`)."""
+
+    details: dict = field(default_factory=dict)
+    seconds: float | None = None
 
 
 def newest_mtime(p: Path) -> float:

@@ -88,7 +88,8 @@ def test_training_recovers_the_generators_exposure(tmp_path):
     per-view appearance on, the fitted gains match the generator's within 5 % (both normalised by their mean
     over the views: a common factor belongs to the texture). Mid-grey albedo, so no view clips at white (a
     clipped pixel hides its gain)."""
-    sc = small_scene(albedo={"kind": "noise", "scale": 2.0, "contrast": 0.6, "color": [0.5, 0.45, 0.4]}, cameras={"n_views": 12, "width": 80, "height": 80},
+    sc = small_scene(albedo={"kind": "noise", "scale": 2.0, "contrast": 0.6, "color": [0.5, 0.45, 0.4]},
+                     cameras={"n_views": 12, "width": 80, "height": 80},
                      effects=[{"kind": "exposure", "amount": 0.25, "white_balance": 0.08}])
     write_scene(sc, tmp_path)
     args = ["train", str(tmp_path), "--train.iterations", "400", "--train.no-progress", "--train.preview-every", "0",

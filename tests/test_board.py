@@ -9,9 +9,19 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.board import (board_spec, detect, locate, make_board, mesh_units, page_image, to_board_frame, use_board,
-                            write_page)
-from pipeline.cameras_config import CamerasConfig
+from dvr.cameras import project_points, transform_points
+from pipeline.board import (
+    board_spec,
+    detect,
+    locate,
+    make_board,
+    mesh_units,
+    page_image,
+    to_board_frame,
+    use_board,
+    write_page,
+)
+from pipeline.cameras import CamerasConfig
 from pipeline.cli import main
 from pipeline.workspace import StageError
 
@@ -35,9 +45,8 @@ def test_detect_rendered_board(board_scene):
     for img, P in zip(images, _projections(cams)):
         ids, uv = detect(img, make_board(SPEC))
         counts.append(len(ids))
-        X = board_points(SPEC, ids) @ to_world[:3, :3].T + to_world[:3, 3]
-        x = np.c_[X, np.ones(len(X))] @ P.T
-        errs.extend(np.linalg.norm(x[:, :2] / x[:, 2:] - uv, axis=1))
+        errs.extend(np.linalg.norm(project_points(P, transform_points(to_world, board_points(SPEC, ids)))[0] - uv,
+                                   axis=1))
     assert min(counts) >= 6, counts
     assert np.median(errs) < 0.5, np.median(errs)
 
@@ -53,7 +62,7 @@ def test_scale_and_frame_from_cameras_of_any_scale(board_scene):
     assert fit.residual_mm < 2.0
     Rn, tn, _ = to_board_frame(fit, cams.R, f * cams.t - np.einsum("nij,j->ni", cams.R, shift), np.zeros((0, 3)))
     centers = -np.einsum("nji,nj->ni", Rn, tn)
-    true_centers = cams.centers @ np.asarray(gt["world_to_board"])[:3, :3].T + np.asarray(gt["world_to_board"])[:3, 3]
+    true_centers = transform_points(np.asarray(gt["world_to_board"]), cams.centers)
     assert np.abs(centers - true_centers).max() < 0.005  # metres: camera centres in the board frame within 5 mm
     assert (centers[:, 2] > 0).all()
 
@@ -74,7 +83,8 @@ def test_board_frame_keeps_the_pixels():
 
 
 def test_no_board_changes_nothing(tmp_path):
-    """Photos without a board: use_board hands back the very same arrays, writes nothing, and the mesh stays unitless."""
+    """Photos without a board: use_board hands back the very same arrays, writes nothing, and the mesh stays
+    unitless."""
     und = tmp_path / "sfm" / "undistorted"
     (und / "images").mkdir(parents=True)
     rng = np.random.default_rng(1)
@@ -99,8 +109,8 @@ def test_no_board_changes_nothing(tmp_path):
 ])
 def test_bad_board_definition(args, words):
     with pytest.raises(StageError, match=words) as e:
-        board_spec(*args, where="--cameras-cfg.board-*")
-    assert "\n" not in str(e.value) and str(e.value).startswith("--cameras-cfg.board-*")
+        board_spec(*args, where="--cameras.board-*")
+    assert "\n" not in str(e.value) and str(e.value).startswith("--cameras.board-*")
 
 
 def test_board_command(tmp_path, capsys):

@@ -9,12 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from dvr.cameras import load_cameras
+from dvr.cameras import load_cameras, transform_points
 from pipeline import cameras as cameras_stage
 from pipeline.board import detect, make_board, spec_from_config
 from pipeline.board_poses import MIN_CORNERS, board_cameras, calibrate
-from pipeline.cameras_config import CamerasConfig
+from pipeline.cameras import CamerasConfig
 from pipeline.cli import main
+from pipeline.config import Config
+from pipeline.stages import run_stage
 from pipeline.workspace import StageError, Workspace
 
 SFM_FAILS = "photos: SfM poses are inconsistent for every setting tried (views 000001, 000004)"
@@ -22,9 +24,7 @@ SFM_FAILS = "photos: SfM poses are inconsistent for every setting tried (views 0
 
 def _true_centres(cams, gt):
     """GT camera centres in the board's frame (metres)."""
-    T = np.asarray(gt["world_to_board"])
-    world = cams.centers @ cams.scale_mat[:3, :3].T + cams.scale_mat[:3, 3]
-    return world @ T[:3, :3].T + T[:3, 3]
+    return transform_points(np.asarray(gt["world_to_board"]), cams.sfm_centers)
 
 
 def test_board_alone_gives_focal_and_poses(board_scene):
@@ -78,8 +78,7 @@ def test_stage_poses_from_the_board_when_sfm_cannot(board_scene, tmp_path, monke
     info = json.loads((ws / "board.json").read_text())
     assert info["poses_from"] == "board" and info["views"] == 8 and info["sfm_failed"] == SFM_FAILS
     est = load_cameras(ws / "cameras.npz")
-    sfm_frame = est.centers @ est.scale_mat[:3, :3].T + est.scale_mat[:3, 3]
-    assert np.abs(sfm_frame - _true_centres(cams, gt)).max() < 0.003
+    assert np.abs(est.sfm_centers - _true_centres(cams, gt)).max() < 0.003
     S = est.scale_mat  # the support plane is the board's z = 0: heights in metres = z
     on_board = np.linalg.solve(S, np.array([[0.05, -0.02, 0.0, 1.0], [0.01, 0.03, 0.04, 1.0]]).T).T
     assert est.ground is not None and abs(est.ground @ on_board[0]) < 1e-6 and est.ground @ on_board[1] > 0
@@ -96,10 +95,10 @@ def test_without_a_board_the_sfm_error_stands(small_ws, tmp_path, monkeypatch):
     monkeypatch.setattr(cameras_stage, "run_sfm", sfm_fails)
     ws = Workspace(tmp_path / "ws")
     with pytest.raises(StageError) as e:
-        cameras_stage.run(ws, small_ws / "images", CamerasConfig())
+        run_stage("cameras", ws, images=small_ws / "images")
     assert str(e.value).startswith(SFM_FAILS) and "the board is seen in 0/8 photos" in str(e.value)
     with pytest.raises(StageError) as e:
-        cameras_stage.run(ws, small_ws / "images", CamerasConfig(board=False))
+        run_stage("cameras", ws, Config(cameras=CamerasConfig(board=False)), images=small_ws / "images")
     assert str(e.value) == SFM_FAILS
 
 

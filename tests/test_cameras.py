@@ -5,7 +5,20 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from dvr.cameras import decompose_projection, load_cameras, pixel_rays, project, save_cameras, sphere_bounds
+from dvr.cameras import (
+    decompose_projection,
+    in_contact_band,
+    load_cameras,
+    pixel_centers,
+    pixel_rays,
+    project,
+    project_points,
+    save_cameras,
+    sphere_bounds,
+    to_normalized,
+    to_sfm,
+    transform_points,
+)
 
 
 def _cam(seed=0):
@@ -66,8 +79,37 @@ def test_save_load_normalized_frame(tmp_path):
     save_cameras(tmp_path / "cameras.npz", K[None], R[None], t[None], scale)
     cams = load_cameras(tmp_path / "cameras.npz")
     c_sfm = -R.T @ t
-    assert np.allclose(cams.centers[0] * 5 + scale[:3, 3], c_sfm)
+    assert np.allclose(cams.centers[0] * 5 + scale[:3, 3], c_sfm) and np.allclose(cams.sfm_centers[0], c_sfm)
     assert np.allclose(cams.K[0], K) and np.allclose(cams.R[0], R)
+
+
+def test_frame_conversions_and_numpy_projection():
+    """to_sfm / to_normalized invert each other (the uniform form for a scale_mat without rotation);
+    project_points agrees with the torch project, one view or a stack, BLAS or einsum sums; the contact band."""
+    rng = np.random.default_rng(4)
+    S = np.diag([2.5, 2.5, 2.5, 1.0])
+    S[:3, 3] = [1.0, -2.0, 0.5]
+    x = rng.normal(size=(50, 3))
+    assert np.allclose(to_normalized(to_sfm(x, S), S), x) and np.allclose(to_normalized(to_sfm(x, S), S, True), x)
+    Rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    S2 = S.copy()
+    S2[:3, :3] = 2.5 * Rot  # with a rotation only the general form inverts
+    assert np.allclose(to_normalized(transform_points(S2, x), S2), x)
+    Ps = np.stack([K @ np.c_[R, t] for K, R, t in (_cam(5), _cam(6))])
+    uv_t, z_t = project(torch.from_numpy(x), torch.from_numpy(Ps))
+    for blas in (True, False):
+        uv, z = project_points(Ps, x, blas=blas)
+        assert uv.shape == (2, 50, 2) and np.allclose(uv, uv_t.numpy()) and np.allclose(z, z_t.numpy())
+        assert np.allclose(project_points(Ps[1], x, blas=blas)[0], uv[1])
+    h = np.array([-0.01, 0.0, 0.02, 0.03, 0.5])
+    assert in_contact_band(h, 0.03).tolist() == [False, True, True, False, False]
+    assert in_contact_band(torch.from_numpy(h), 0.03).tolist() == [False, True, True, False, False]
+
+
+def test_pixel_centers_are_the_grid_sample_convention():
+    g = pixel_centers(3, 4)
+    assert g.shape == (3, 4, 2) and g.dtype == torch.float32
+    assert g[0, 0].tolist() == [0.5, 0.5] and g[2, 3].tolist() == [3.5, 2.5]
 
 
 def test_load_errors(tmp_path):
@@ -92,9 +134,7 @@ def test_reframe_keeps_projections_and_maps_depths():
     new = cams.reframe(c, r)
     xp = np.random.default_rng(0).normal(size=(20, 3)) * 0.3
     x = c + r * xp
-    a = (cams.P[0] @ np.c_[x, np.ones(20)].T).T
-    b = (new.P[0] @ np.c_[xp, np.ones(20)].T).T
-    assert np.allclose(a[:, :2] / a[:, 2:], b[:, :2] / b[:, 2:])
+    assert np.allclose(project_points(cams.P[0], x)[0], project_points(new.P[0], xp)[0])
     assert np.allclose(np.linalg.norm(x - cams.centers[0], axis=1) / r, np.linalg.norm(xp - new.centers[0], axis=1))
     assert np.allclose(new.scale_mat[:3, 3], cams.scale_mat[:3, :3] @ c) and np.isclose(new.scale_mat[0, 0], 2 * r)
     with pytest.raises(ValueError, match="radius"):

@@ -9,6 +9,7 @@ from dvr.cameras import load_cameras
 from dvr.data import list_images
 from dvr.metrics import pose_errors
 from pipeline.cli import main
+from pipeline.stages import run_stage
 from pipeline.synth import scene_from_dict, write_scene
 from tests.conftest import ROOT
 
@@ -27,7 +28,7 @@ def test_ladder_climbs_where_default_sift_falls_short(tmp_path, capsys):
     spec["cameras"].update(n_views=24, rings=2, width=320, height=240, heldout=0)
     write_scene(scene_from_dict(spec, ROOT / "configs" / "scenes"), tmp_path / "syn")
     ws = tmp_path / "ws"
-    assert main(["cameras", str(ws), "--images", str(tmp_path / "syn" / "images")]) == 0
+    run_stage("cameras", ws, images=tmp_path / "syn" / "images")
     out = capsys.readouterr().out
     stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
     rungs = stamp["rungs"]

@@ -47,3 +47,53 @@ def test_bad_config_file_one_line_error(tmp_path, capsys):
 def test_mesh_without_model(tmp_path, capsys):
     rc = main(["mesh", str(tmp_path)])
     assert rc == 2 and "final.pt" in capsys.readouterr().err
+
+
+def _options(cls) -> set[str]:
+    import tyro
+
+    return {o for a in tyro.extras.get_parser(cls)._actions for o in a.option_strings}
+
+
+def test_every_option_the_readme_and_makefile_name_parses():
+    """Each ``--section.option`` the README or the Makefile names is an option of ``python -m pipeline
+    reconstruct`` (the one namespace per stage every stage command shares), and each path option exists."""
+    import re
+
+    from pipeline.cli import COMMAND_CLASSES
+
+    known = _options(COMMAND_CLASSES["reconstruct"])
+    text = (ROOT / "README.md").read_text() + (ROOT / "Makefile").read_text()
+    named = set(re.findall(r"--[a-z][a-z0-9-]*\.[a-z][a-z0-9-]*[a-z0-9]", text))
+    assert len(named) >= 10  # the README documents options; the pattern finds them
+    assert sorted(named - known) == []
+    assert {"--images", "--masks-dir", "--given-cameras", "--config", "--force"} <= known
+
+
+def test_stage_table_drives_cli_config_and_make():
+    """One stage table: every stage is a CLI command and a make target, every config section belongs to a stage,
+    and a stage command offers its own section's options only."""
+    from pipeline.cli import COMMAND_CLASSES, COMMANDS
+    from pipeline.stages import STAGES
+
+    names = [s.name for s in STAGES]
+    assert set(names) <= set(COMMANDS)
+    make = subprocess.run(["make", "-s", "print-stages"], cwd=ROOT, capture_output=True, text=True)
+    assert make.stdout.split() == names
+    import dataclasses
+
+    assert {s.section for s in STAGES if s.section} == {f.name for f in dataclasses.fields(Config)}
+    masks = _options(COMMAND_CLASSES["masks"])
+    assert "--masks.hull-res" in masks and "--masks-dir" in masks
+    assert not any(o.startswith("--train.") for o in masks) and "--images" not in masks
+
+
+def test_config_from_args_matches_the_preset_plus_options():
+    from pipeline.config import config_from_args
+
+    cfg = config_from_args(ROOT / "configs" / "fast.yaml", ["--train.iterations", "7", "--masks.no-stereo"])
+    ref = load_config(ROOT / "configs" / "fast.yaml")
+    assert cfg.train.iterations == 7 and cfg.masks.stereo is False
+    ref.train.iterations, ref.masks.stereo = 7, False
+    assert cfg == ref
+

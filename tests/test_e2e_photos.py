@@ -21,7 +21,8 @@ from PIL import Image
 from dvr.cameras import load_cameras
 from dvr.data import list_images
 from dvr.metrics import chamfer_fscore, masked_psnr, pose_errors, umeyama
-from pipeline.cli import main
+from pipeline.config import load_config
+from pipeline.stages import run_stage
 from pipeline.synth import load_scene_file, write_scene
 from pipeline.synth.phone import upright_roll, write_phone_folder
 from pipeline.texture import render_textured
@@ -69,10 +70,11 @@ def test_phone_folder_on_a_floor_to_textured_mesh(tmp_path):
     write_scene(load_scene_file(ROOT / "configs" / "scenes" / "e2e_floor.yaml"), syn)
     photos, truth = _phone_folder(syn, tmp_path)
     full, ws = tmp_path / "all photos", tmp_path / "trained"
-    cfg = ["--config", str(ROOT / "configs" / "default.yaml")]
-    assert main(["cameras", str(full), "--images", str(photos), *cfg]) == 0
-    assert main(["masks", str(full), *cfg]) == 0
-    assert main(["depth", str(full), *cfg]) == 0
+    cfg = load_config(ROOT / "configs" / "default.yaml")
+    cfg.train.progress = False
+    run_stage("cameras", full, cfg, images=photos)
+    run_stage("masks", full, cfg)
+    run_stage("depth", full, cfg)
     names = [p.stem for p in list_images(full / "images")]
     assert sorted(names) == sorted(truth)  # every photo registered, every format read
     gt_cams, held_cams = load_cameras(syn / "cameras.npz"), load_cameras(syn / "gt" / "heldout" / "cameras.npz")
@@ -112,7 +114,7 @@ def test_phone_folder_on_a_floor_to_textured_mesh(tmp_path):
     z = dict(np.load(flat / "cameras.npz"))
     z.pop("ground_plane")
     np.savez(flat / "cameras.npz", **z)
-    assert main(["masks", str(flat), *cfg]) == 0
+    run_stage("masks", flat, cfg)
     with_plane, without = iou(full), iou(flat)
     print(json.dumps({"mask_iou": with_plane, "mask_iou_without_plane": without}))
     assert with_plane >= 0.95 and without < 0.9
@@ -127,17 +129,15 @@ def test_phone_folder_on_a_floor_to_textured_mesh(tmp_path):
         m[-12:] = 255
         cv2.imwrite(str(own / f"{n}.png"), m)
     shutil.copytree(full, mine, ignore=shutil.ignore_patterns("masks", "depth", ".stages"))
-    assert main(["masks", str(mine), "--masks", str(own), *cfg]) == 0
+    run_stage("masks", mine, cfg, masks_dir=own)
     for n in names:
         assert np.array_equal(cv2.imread(str(mine / "masks" / f"{n}.png"), 0) > 127,
                               cv2.imread(str(own / f"{n}.png"), 0) > 127), n
 
     # train on the training photos, mesh, texture, report
     subset_workspace(full, ws, [k for k, n in enumerate(names) if not n.startswith("heldout_")])
-    assert main(["train", str(ws), *cfg, "--train.no-progress"]) == 0
-    assert main(["mesh", str(ws), *cfg]) == 0
-    assert main(["texture", str(ws), *cfg]) == 0
-    assert main(["report", str(ws)]) == 0
+    for stage in ("train", "mesh", "texture", "report"):
+        run_stage(stage, ws, cfg)
     gt = trimesh.load(syn / "gt" / "mesh.ply")
     gt.apply_transform(np.block([[s * R, t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
     pred = trimesh.load(ws / "mesh" / "clean.ply")

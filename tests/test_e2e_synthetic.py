@@ -1,5 +1,5 @@
 """End to end on the standard synthetic object (textured torus, 24 views, 128 px, GT cameras and masks):
-synth → train → mesh through the CLI; Chamfer to the GT mesh ≤ 2 % of its diagonal; with sparse depth
+synth → train (CLI) → mesh (API); Chamfer to the GT mesh ≤ 2 % of its diagonal; with sparse depth
 added, no worse."""
 
 import json
@@ -10,6 +10,8 @@ import trimesh
 
 from dvr.metrics import chamfer_fscore
 from pipeline.cli import main
+from pipeline.config import load_config
+from pipeline.stages import run_stage
 from pipeline.synth import load_scene_file, write_scene
 from tests.conftest import ROOT
 
@@ -27,8 +29,8 @@ def torus_ws(tmp_path_factory):
 
 def _reconstruct(ws, extra=()):
     args = ["--config", str(ROOT / "configs" / "fast.yaml")]
-    assert main(["train", str(ws), *args, "--train.no-progress", *extra]) == 0
-    assert main(["mesh", str(ws), *args]) == 0
+    assert main(["train", str(ws), *args, "--train.no-progress", *extra]) == 0  # the CLI a user runs
+    run_stage("mesh", ws, load_config(ROOT / "configs" / "fast.yaml"))  # the API the CLI calls
     pred = trimesh.load(ws / "mesh" / "clean.ply")
     gt = trimesh.load(ws / "gt" / "mesh.ply")
     return chamfer_fscore(pred, gt, n=50000)

@@ -1,4 +1,4 @@
-"""Hard cases of DESIGN.md: no NaN/Inf in losses, gradients or parameters, correct hit/miss/inside
+"""Hard cases of docs/design.md ("Hard cases"): no NaN/Inf in losses, gradients or parameters, correct hit/miss/inside
 classification, and for each guard a test that fails when the guard is removed."""
 
 import copy

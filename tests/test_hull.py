@@ -31,8 +31,10 @@ def test_outside_hull_and_logits(small_ws):
     assert out.tolist() == [False, True, True]
     lg = hull_logits(data.P, data.masks, res=32)
     assert lg.shape == (33, 33, 33) and torch.isfinite(lg).all()
-    with pytest.raises(Exception):
+    with pytest.raises(ValueError, match="points must have shape"):
         outside_hull(pts[:, :2], data.P, data.masks)
+    with pytest.raises(ValueError, match="P must be"):
+        outside_hull(pts, data.P[:, :2], data.masks)
 
 
 def test_carve_along_rays_frees_only_the_segment_in_front():

@@ -8,10 +8,18 @@ import torch
 
 from dvr.cameras import Cameras, load_cameras
 from dvr.data import list_images
-from pipeline.cli import main
-from pipeline.mask_stereo import BACKGROUND, OBJECT, UNDECIDED, neighbours, stereo_costs, stereo_labels, \
-    stereo_seed_labels
+from pipeline.config import Config
+from pipeline.mask_stereo import (
+    BACKGROUND,
+    OBJECT,
+    UNDECIDED,
+    neighbours,
+    stereo_costs,
+    stereo_labels,
+    stereo_seed_labels,
+)
 from pipeline.masks import background_depths
+from pipeline.stages import run_stage
 from pipeline.synth import scene_from_dict, write_scene
 from tests.conftest import ROOT
 
@@ -54,15 +62,17 @@ def test_masks_stage_separates_object_printed_like_its_backdrop(camo, tmp_path):
         return ((m & gt).sum((1, 2)) / (m | gt).sum((1, 2))).mean()
 
     ious = {}
-    for stereo in ("--masks-cfg.stereo", "--masks-cfg.no-stereo"):
-        ws = tmp_path / stereo
-        assert main(["cameras", str(ws), "--images", str(syn / "images"), "--cameras", str(syn / "cameras.npz"),
-                     "--cameras-cfg.no-triangulate-given"]) == 0  # the seeds alone: no SfM tracks to help
-        assert main(["masks", str(ws), stereo]) == 0
+    for stereo in (True, False):
+        ws = tmp_path / f"stereo={stereo}"
+        cfg = Config()
+        cfg.cameras.triangulate_given = False  # the seeds alone: no SfM tracks to help
+        cfg.masks.stereo = stereo
+        run_stage("cameras", ws, cfg, images=syn / "images", given_cameras=syn / "cameras.npz")
+        run_stage("masks", ws, cfg)
         ious[stereo] = iou(ws)
     print(ious)
-    assert ious["--masks-cfg.stereo"] >= 0.95
-    assert ious["--masks-cfg.no-stereo"] < ious["--masks-cfg.stereo"] - 0.05  # the stereo seeds make the difference
+    assert ious[True] >= 0.95
+    assert ious[False] < ious[True] - 0.05  # the stereo seeds make the difference
 
 
 def test_costs_shapes_and_smoke():

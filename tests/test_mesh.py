@@ -3,8 +3,7 @@
 import numpy as np
 import trimesh
 
-from pipeline.config import MeshConfig
-from pipeline.mesh import clean_mesh, keep_large_components
+from pipeline.mesh import MeshConfig, clean_mesh, keep_large_components
 
 
 def _holed_sphere_and_speck():

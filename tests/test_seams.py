@@ -5,8 +5,8 @@ errors for bad input."""
 import numpy as np
 import pytest
 
-from pipeline.cameras_config import TextureConfig
 from pipeline.seams import fit_seam_offsets, mesh_edges, texel_offsets
+from pipeline.texture import TextureConfig
 from tests.test_texture import SYNTH, bake_texels, make_cameras, plane_mesh, render_mesh, smooth_colour
 
 

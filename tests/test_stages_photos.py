@@ -11,8 +11,10 @@ from PIL import Image
 
 from dvr.cameras import load_cameras
 from dvr.metrics import pose_errors, umeyama
-from pipeline.cameras import list_photos, normalization, read_upright
+from pipeline.cameras import list_photos, normalization
 from pipeline.cli import main
+from pipeline.photos import read_upright
+from pipeline.stages import run_stage
 from pipeline.synth import load_scene_file, write_scene
 from tests.conftest import ROOT
 
@@ -35,9 +37,9 @@ def photo_ws(tmp_path_factory):
     write_scene(load_scene_file(ROOT / "configs" / "scenes" / "torus_backdrop.yaml"), syn)
     before = _tree_hash(syn / "images")
     ws = root / "ws"
-    assert main(["cameras", str(ws), "--images", str(syn / "images")]) == 0
-    assert main(["masks", str(ws)]) == 0
-    assert main(["depth", str(ws)]) == 0
+    run_stage("cameras", ws, images=syn / "images")
+    run_stage("masks", ws)
+    run_stage("depth", ws)
     assert _tree_hash(syn / "images") == before  # inputs untouched
     return syn, ws
 
@@ -174,12 +176,12 @@ def test_given_cameras_skip_sfm(photo_ws, tmp_path):
     exists as after SfM, and the depths agree with the GT depth maps; without triangulation: no points, no depth."""
     syn, _ = photo_ws
     ws = tmp_path / "given"
-    assert main(["cameras", str(ws), "--images", str(syn / "images"), "--cameras", str(syn / "cameras.npz")]) == 0
+    run_stage("cameras", ws, images=syn / "images", given_cameras=syn / "cameras.npz")
     a, b = load_cameras(ws / "cameras.npz"), load_cameras(syn / "cameras.npz")
     assert np.allclose(a.centers, b.centers, atol=1e-6) and np.allclose(a.K, b.K, atol=1e-6)
     assert np.allclose(a.scale_mat, b.scale_mat)
     assert not (ws / "sfm" / "ladder").exists()  # no mapping ran
-    assert main(["depth", str(ws)]) == 0
+    run_stage("depth", ws)
     rel = []
     for i in range(N_VIEWS):
         z, g = np.load(ws / "depth" / f"{i:06d}.npz"), np.load(syn / "gt" / "depth" / f"{i:06d}.npy")
@@ -190,10 +192,11 @@ def test_given_cameras_skip_sfm(photo_ws, tmp_path):
     rel = np.concatenate(rel)
     assert len(rel) > 200 and np.median(rel) <= 0.005, (len(rel), np.median(rel))
     plain = tmp_path / "plain"
-    assert main(["cameras", str(plain), "--images", str(syn / "images"), "--cameras", str(syn / "cameras.npz"),
-                 "--cameras-cfg.no-triangulate-given"]) == 0
+    assert main(["cameras", str(plain), "--images", str(syn / "images"), "--given-cameras", str(syn / "cameras.npz"),
+                 "--cameras.no-triangulate-given"]) == 0
     assert not (plain / "sfm").exists()
-    assert main(["depth", str(plain)]) == 0 and not (plain / "depth").exists()
+    run_stage("depth", plain)
+    assert not (plain / "depth").exists()
 
 
 def test_given_colmap_model_skips_sfm(photo_ws, tmp_path, capsys):
@@ -201,12 +204,13 @@ def test_given_colmap_model_skips_sfm(photo_ws, tmp_path, capsys):
     model = tmp_path / "model"
     shutil.copytree(ws0 / "sfm" / "sparse" / "best", model)  # a COLMAP model made from these photos
     ws = tmp_path / "given_model"
-    assert main(["cameras", str(ws), "--images", str(syn / "images"), "--cameras", str(model)]) == 0
+    run_stage("cameras", ws, images=syn / "images", given_cameras=model)
     a, b = load_cameras(ws / "cameras.npz"), load_cameras(ws0 / "cameras.npz")
     assert np.allclose(a.P, b.P, atol=1e-6) and np.allclose(a.scale_mat, b.scale_mat)
     assert sorted(p.name for p in (ws / "images").iterdir()) == sorted(p.name for p in (ws0 / "images").iterdir())
-    assert main(["depth", str(ws)]) == 0 and len(list((ws / "depth").glob("*.npz"))) > 0
-    assert main(["cameras", str(tmp_path / "bad"), "--images", str(syn / "images"), "--cameras",
+    run_stage("depth", ws)
+    assert len(list((ws / "depth").glob("*.npz"))) > 0
+    assert main(["cameras", str(tmp_path / "bad"), "--images", str(syn / "images"), "--given-cameras",
                  str(tmp_path)]) == 2  # a folder that is no model
     assert "not a COLMAP sparse model" in capsys.readouterr().err
 
@@ -246,15 +250,15 @@ def test_user_masks_validated(photo_ws, tmp_path, capsys):
     ws = tmp_path / "ws"
     shutil.copytree(ws0, ws, ignore=shutil.ignore_patterns("masks", ".stages"))
     (tmp_path / "m").mkdir()
-    assert main(["masks", str(ws), "--masks", str(tmp_path / "m")]) == 2
+    assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2
     assert "no mask for 000000" in capsys.readouterr().err
     for i in range(N_VIEWS):
         shutil.copy(syn / "gt" / "masks" / f"{i:06d}.png", tmp_path / "m" / f"{i:06d}.png")
     cv2.imwrite(str(tmp_path / "m" / "000003.png"), np.full((240, 320), 128, np.uint8))
-    assert main(["masks", str(ws), "--masks", str(tmp_path / "m")]) == 2
+    assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2
     assert "neither black nor white" in capsys.readouterr().err
     shutil.copy(syn / "gt" / "masks" / "000003.png", tmp_path / "m" / "000003.png")
-    assert main(["masks", str(ws), "--masks", str(tmp_path / "m")]) == 0
+    assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 0
     m = cv2.imread(str(ws / "masks" / "000003.png"), 0)
     assert m.shape == cv2.imread(str(ws / "images" / "000003.png"), 0).shape
 
@@ -316,7 +320,7 @@ def test_given_cameras_survive_a_failed_triangulation(small_ws, tmp_path, monkey
 
     monkeypatch.setattr(cameras_stage, "triangulate_at", fails)
     ws = tmp_path / "given"
-    assert main(["cameras", str(ws), "--images", str(small_ws / "images"), "--cameras",
+    assert main(["cameras", str(ws), "--images", str(small_ws / "images"), "--given-cameras",
                  str(small_ws / "cameras.npz")]) == 0
     assert "points triangulated at the given cameras" in capsys.readouterr().err
     assert not (ws / "sfm").exists()

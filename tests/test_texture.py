@@ -12,12 +12,21 @@ import pytest
 import trimesh
 
 from dvr.cameras import load_cameras
-from pipeline.cameras_config import TextureConfig
+from pipeline.blend import ViewSampler, depth_edges, robust_weights, sample_visible, sharpness_map
 from pipeline.synth import scene_from_dict, write_scene
 from pipeline.synth.render import MeshShape
-from pipeline.blend import ViewSampler, depth_edges, robust_weights, sample_visible, sharpness_map
-from pipeline.texture import (depth_maps, dilate_gutter, export_textured, fill_unseen, rasterize_atlas, render_textured,
-                              sample_bilinear, texel_geometry, texture_mesh)
+from pipeline.texture import (
+    TextureConfig,
+    depth_maps,
+    dilate_gutter,
+    export_textured,
+    fill_unseen,
+    rasterize_atlas,
+    render_textured,
+    sample_bilinear,
+    texel_geometry,
+    texture_mesh,
+)
 from tests.conftest import SHARED
 
 W = 256
@@ -147,7 +156,7 @@ def test_no_visible_seams(baked):
     for (fa, fb), (ea, eb) in zip(adj, edges):
         pa, pb = merged.vertices[ea], merged.vertices[eb]
 
-        def uv_on(face):
+        def uv_on(face, pa=pa, pb=pb):
             vs = m.faces[face]
             ia = vs[np.argmin(np.linalg.norm(m.vertices[vs] - pa, axis=1))]
             ib = vs[np.argmin(np.linalg.norm(m.vertices[vs] - pb, axis=1))]

@@ -133,3 +133,40 @@ def test_one_mask_cannot_push_the_contact_band_free(small_ws, tmp_path):
     t.cfg.contact_band = 0.0
     t.data.masks[1] = 1.0
     assert t.contact_doubt(pts).tolist() == [False, False]  # no band: one view is enough
+
+
+def test_loss_terms_are_named_after_their_weights(small_ws, tmp_path):
+    """Every loss term is logged (unweighted) under the name of its LossWeights field, and the total is
+    Σ weight × term."""
+    from dataclasses import fields
+
+    from dvr.trainer import LossWeights
+
+    cfg = tiny_cfg(iterations=1, appearance=True, weights=LossWeights(tv=0.5, normal=0.3, appearance=2.0))
+    t = Trainer(cfg, load_scene(small_ws, torch.device("cpu")), tmp_path)
+    total, stats = t.losses(0)
+    names = {f.name for f in fields(LossWeights)}
+    terms = {k: v for k, v in stats.items() if k in names}
+    assert set(terms) == names  # all of them here: hits exist, appearance is on
+    assert set(stats) - names == {"psnr", "hit_frac"}
+    assert torch.allclose(total.detach(), sum(getattr(cfg.weights, k) * v for k, v in terms.items()))
+
+
+def test_render_batch_fields(small_ws, tmp_path):
+    cfg = tiny_cfg(iterations=1)
+    t = Trainer(cfg, load_scene(small_ws, torch.device("cpu")), tmp_path)
+    b = t.render_batch(0)
+    n = cfg.batch_rays
+    assert b.origins.shape == b.dirs.shape == (n, 3) and b.in_mask.shape == b.hit.shape == (n,)
+    assert torch.equal(b.hit, b.surface.hit) and b.surface_points.shape == (int(b.hit.sum()), 3)
+    assert b.rendered_rgb.shape == b.observed_rgb.shape == (int((b.hit & b.in_mask).sum()), 3)
+    assert b.surface_points.requires_grad and b.rendered_rgb.requires_grad
+
+
+def test_mlp_field_trains_at_one_resolution(small_ws, tmp_path):
+    """coarse_res below base_res asks for coarse to fine, which a field without ``supports_resize`` ignores."""
+    from dvr.fields import FieldConfig
+
+    cfg = tiny_cfg(iterations=2, coarse_res=16, field=FieldConfig(kind="mlp", hidden=16, mlp_layers=1))
+    t = train(cfg, load_scene(small_ws, torch.device("cpu")), tmp_path)
+    assert not t.coarse and t.upsample_step is None and t.step == 2

@@ -4,7 +4,7 @@ chart weights, bad input, and the bake taking the sharp view of a plane where a 
 import numpy as np
 import pytest
 
-from pipeline.cameras_config import TextureConfig
+from pipeline.texture import TextureConfig
 from pipeline.view_select import chart_weights, face_adjacency, select_views
 from tests.test_texture import SYNTH, inner_rms_error, plane_mesh, sharp_and_blurred_views
 

@@ -4,7 +4,7 @@ Only what the scene lists is computed: normals only for lighting or specular hig
 only when one is listed, each effect only when listed. The list of computed passes is returned and written
 to ``gt/scene.json`` so tests can check it.
 
-Written (DESIGN.md layout): ``images/``, ``masks/`` (unless ``write_masks: false``), ``cameras.npz``
+Written (docs/design.md, "Workspace"): ``images/``, ``masks/`` (unless ``write_masks: false``), ``cameras.npz``
 (world_mat_i in the world = "SfM" frame, scale_mat: canonical/normalized → world), ``depth/`` when
 ``sparse_depth`` > 0, and ``gt/``: ``mesh.ply`` (world frame), ``depth/*.npy`` (ray depth, normalized
 frame, 0 on background), ``heldout/`` views, ``scene.json``, ``board.json`` (a ground effect's printed board).
@@ -24,7 +24,7 @@ import torch
 import trimesh
 from skimage import measure
 
-from dvr.cameras import save_cameras, sphere_bounds
+from dvr.cameras import save_cameras, sphere_bounds, sphere_frame
 
 from ..raycast import mesh_intersector
 from .ground import board_spec_of, ground_albedo, ground_shading, plane_hits
@@ -115,6 +115,7 @@ class MeshShape:
 
 
 def sphere_trace(shape: Shape, o: torch.Tensor, d: torch.Tensor, iters: int = 256, eps: float = 1e-5):
+    """Sphere tracing of the shape's SDF along rays inside the unit sphere: hit (M,) bool and ray depth t (M,)."""
     near, far, valid = sphere_bounds(o, d, 1.0)
     t = near.clone()
     alive = valid.clone()
@@ -133,6 +134,7 @@ def sphere_trace(shape: Shape, o: torch.Tensor, d: torch.Tensor, iters: int = 25
 
 
 def sdf_normals(shape: Shape, p: torch.Tensor, h: float = 1e-4) -> torch.Tensor:
+    """Unit normals (M, 3) of the shape's SDF at points p (central differences of step ``h``)."""
     e = torch.eye(3, dtype=p.dtype) * h
     g = torch.stack([sdf(shape, p + e[i]) - sdf(shape, p - e[i]) for i in range(3)], -1)
     return g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
@@ -159,6 +161,7 @@ def procedural_noise(p: np.ndarray, scale: float, seed: int, levels: int = 0) ->
 
 
 def albedo_of(scene: Scene, pts: np.ndarray, uv: np.ndarray | None, tex: np.ndarray | None) -> np.ndarray:
+    """Albedo (M, 3) of the scene's object at surface points ``pts`` (and their ``uv`` in the mesh texture ``tex``)."""
     a = scene.albedo
     if a.kind == "constant":
         return np.broadcast_to(np.asarray(a.color, float), pts.shape).copy()
@@ -229,6 +232,7 @@ def camera_rig(scene: Scene, heldout: bool = False):
 def object_tracer(scene: Scene, mesh_shape: MeshShape | None, need_normals: bool):
     """``trace(o, d)`` → first object hits (hit, depth, point, normal or None, uv or None) of rays (M, 3)."""
     def trace(o: np.ndarray, d: np.ndarray):
+        """First hits of rays ``o`` + t ``d`` on the mesh or, without one, the SDF."""
         if mesh_shape is not None:
             return mesh_shape.cast(o, d)
         hit_t, t = sphere_trace(scene.shape, torch.from_numpy(o), torch.from_numpy(d))
@@ -365,7 +369,8 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
             on_ground &= ~hit
         img = np.zeros((len(pix), 3))
         if hit.any():
-            col = albedo_of(scene, pts[hit], None if uv is None else uv[hit], mesh_shape.texture if mesh_shape else None)
+            col = albedo_of(scene, pts[hit], None if uv is None else uv[hit],
+                            mesh_shape.texture if mesh_shape else None)
             img[hit] = shade_object(scene, listed, col, None if nrm is None else nrm[hit], d[hit])
         if on_ground.any():
             img[on_ground] = ground_colour(scene, ground, o[on_ground] + t_ground[on_ground, None] * d[on_ground],
@@ -389,7 +394,8 @@ EFFECTS = ("noise", "exposure", "distortion", "blur", "specular", "ground")
 def _list_passes(scene: Scene, passes: list[str], ss: int, need_normals: bool) -> None:
     """Append the passes a scene computed (what tests check: nothing it does not list)."""
     light = scene.lighting.kind != "none"
-    for name, on in [(f"supersample:{ss}", ss > 1), ("normals", need_normals), (f"lighting:{scene.lighting.kind}", light),
+    for name, on in [(f"supersample:{ss}", ss > 1), ("normals", need_normals),
+                     (f"lighting:{scene.lighting.kind}", light),
                      (f"background:{scene.background.kind}", scene.background.kind != "none")]:
         if on and name not in passes:
             passes.append(name)
@@ -423,6 +429,41 @@ def _write_png(path: Path, img: np.ndarray) -> None:
     cv2.imwrite(str(path), img)
 
 
+def _write_views(imgs, masks, depths, img_dir: Path, mask_dir: Path | None, depth_dir: Path | None) -> None:
+    """View i as ``<i:06d>.png`` in ``img_dir``, its mask in ``mask_dir`` and its depth (``.npy``, float32) in
+    ``depth_dir`` (each folder only when given)."""
+    for i in range(len(imgs)):
+        name = f"{i:06d}"
+        _write_png(img_dir / f"{name}.png", imgs[i])
+        if mask_dir is not None:
+            _write_png(mask_dir / f"{name}.png", (masks[i] * 255).astype(np.uint8))
+        if depth_dir is not None:
+            np.save(depth_dir / f"{name}.npy", depths[i].astype(np.float32))
+
+
+def _write_sparse_depth(folder: Path, masks, depths, per_view: int, seed: int) -> None:
+    """``depth/<i:06d>.npz`` per view: ``per_view`` pixels of the mask drawn at random (``seed``), their centres' ray
+    depths from the GT depth maps, confidence 1."""
+    folder.mkdir(exist_ok=True)
+    rng = np.random.default_rng(seed)
+    for i in range(len(masks)):
+        ii, jj = np.nonzero(masks[i])
+        sel = rng.choice(len(ii), size=min(per_view, len(ii)), replace=False) if len(ii) else []
+        uv = np.stack([jj[sel] + 0.5, ii[sel] + 0.5], 1).astype(np.float32) if len(ii) else np.zeros((0, 2))
+        d = depths[i][ii[sel], jj[sel]].astype(np.float32) if len(ii) else np.zeros(0)
+        np.savez(folder / f"{i:06d}.npz", uv=uv, depth=d, confidence=np.ones_like(d))
+
+
+def _ground_plane(ground: Effect | None, mesh, s: float, off: np.ndarray):
+    """With a ground effect: its height in the canonical frame (the GT mesh's lowest point + ``sink``) and the
+    support plane n·x + d = 0 in the world frame (the SfM frame of the GT cameras), n up to the cameras — part of the
+    ground truth the GT cameras carry, as SfM's cameras carry the plane it finds; (None, None) without one."""
+    if ground is None:
+        return None, None
+    ground_z = float(mesh.vertices[:, 2].min()) + ground.sink
+    return ground_z, [0.0, 0.0, 1.0, -float(s * ground_z + off[2])]
+
+
 def gt_mesh(scene: Scene, mesh_shape: MeshShape | None, res: int = 256) -> trimesh.Trimesh:
     """Ground-truth surface in the canonical frame."""
     if mesh_shape is not None:
@@ -446,38 +487,26 @@ def write_scene(scene: Scene, out: str | Path) -> dict:
     s, off = float(scene.world_scale), np.asarray(scene.world_offset, float)
     if not (s > 0 and np.isfinite(s)):
         raise ValueError(f"world_scale must be a positive finite number, got {scene.world_scale}")
-    scale_mat = np.eye(4)
-    scale_mat[:3, :3] *= s
-    scale_mat[:3, 3] = off
+    scale_mat = sphere_frame(off, s)  # canonical → world
     for sub in ["images", "masks", "gt/depth", "gt/heldout/images", "gt/heldout/masks"]:
         (out / sub).mkdir(parents=True, exist_ok=True)
     listed = {e.kind: e for e in scene.effects}
     dist = listed.get("distortion")
     mesh = gt_mesh(scene, mesh_shape)
     ground = listed.get("ground")
-    ground_z = float(mesh.vertices[:, 2].min()) + ground.sink if ground is not None else None
-    # the support plane n·x + d = 0 in the world frame (the SfM frame of the GT cameras), n up to the cameras: part
-    # of the ground truth the GT cameras carry, as SfM's cameras carry the plane it finds
-    plane = [0.0, 0.0, 1.0, -float(s * ground_z + off[2])] if ground_z is not None else None
+    ground_z, plane = _ground_plane(ground, mesh, s, off)
 
     exposure: dict[str, dict] = {}  # per image folder, per view: the exposure gains the photo was rendered with
 
     def one_set(K, R, C, img_dir: Path, mask_dir: Path | None, cam_path: Path, depth_dir: Path | None, seed: int):
+        """Render, distort and write one set of views (training or held-out) with its cameras."""
         imgs, masks, depths, gains = render_views(scene, K, R, C, mesh_shape, passes, seed, ground_z)
         exposure[img_dir.relative_to(out).as_posix()] = {f"{i:06d}": [round(float(x), 6) for x in g]
                                                          for i, g in enumerate(gains)}
         if dist is not None and dist.k1 != 0.0:
             imgs, masks = distort(imgs, masks, K[0], dist.k1)
-        Rw = R
-        tw = -np.einsum("nij,nj->ni", R, s * C + off)
-        save_cameras(cam_path, K, Rw, tw, scale_mat, plane)
-        for i in range(len(K)):
-            name = f"{i:06d}"
-            _write_png(img_dir / f"{name}.png", imgs[i])
-            if mask_dir is not None:
-                _write_png(mask_dir / f"{name}.png", (masks[i] * 255).astype(np.uint8))
-            if depth_dir is not None:
-                np.save(depth_dir / f"{name}.npy", depths[i].astype(np.float32))
+        save_cameras(cam_path, K, R, -np.einsum("nij,nj->ni", R, s * C + off), scale_mat, plane)  # world frame
+        _write_views(imgs, masks, depths, img_dir, mask_dir, depth_dir)
         return imgs, masks, depths
 
     K, R, C = camera_rig(scene)
@@ -490,14 +519,7 @@ def write_scene(scene: Scene, out: str | Path) -> dict:
         (out / "masks").rmdir() if not any((out / "masks").iterdir()) else None
     np.savez(out / "gt" / "cameras.npz", **dict(np.load(out / "cameras.npz")))
     if scene.sparse_depth > 0:
-        (out / "depth").mkdir(exist_ok=True)
-        rng = np.random.default_rng(scene.cameras.seed + 7)
-        for i in range(len(K)):
-            ii, jj = np.nonzero(masks[i])
-            sel = rng.choice(len(ii), size=min(scene.sparse_depth, len(ii)), replace=False) if len(ii) else []
-            uv = np.stack([jj[sel] + 0.5, ii[sel] + 0.5], 1).astype(np.float32) if len(ii) else np.zeros((0, 2))
-            d = depths[i][ii[sel], jj[sel]].astype(np.float32) if len(ii) else np.zeros(0)
-            np.savez(out / "depth" / f"{i:06d}.npz", uv=uv, depth=d, confidence=np.ones_like(d))
+        _write_sparse_depth(out / "depth", masks, depths, scene.sparse_depth, scene.cameras.seed + 7)
         passes.append("sparse_depth")
     Kh, Rh, Ch = camera_rig(scene, heldout=True)
     if len(Kh):

@@ -40,6 +40,8 @@ class Shape:
 
 @dataclass
 class Albedo:
+    """The object's surface colour."""
+
     kind: str = "checker"
     """constant | checker | noise | texture (mesh UV texture)."""
     color: list[float] = field(default_factory=lambda: [0.8, 0.5, 0.3])
@@ -57,6 +59,8 @@ class Albedo:
 
 @dataclass
 class Background:
+    """What the views see behind the object."""
+
     kind: str = "none"
     """none (black) | constant | backdrop (textured sphere around the scene, for SfM features)."""
     color: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
@@ -73,6 +77,8 @@ class Background:
 
 @dataclass
 class Lighting:
+    """Shading of the object (none: albedo only)."""
+
     kind: str = "none"
     """none (albedo only) | lambertian."""
     ambient: float = 0.35
@@ -82,6 +88,8 @@ class Lighting:
 
 @dataclass
 class Effect:
+    """One photographic effect applied to the renders (``kind`` and its parameters)."""
+
     kind: str = "noise"
     """noise (sigma) | exposure (amount: max relative gain change; white_balance: max relative change of each
     colour channel's gain on top; the gains of every view are written to ``gt/exposure.json``) | distortion (k1) |
@@ -125,6 +133,8 @@ class Effect:
 
 @dataclass
 class CameraRig:
+    """The views: how many, image size, distance, field of view and layout around the object."""
+
     n_views: int = 24
     width: int = 128
     height: int = 128
@@ -144,6 +154,8 @@ class CameraRig:
 
 @dataclass
 class Scene:
+    """A synthetic capture: object, colours, background, lighting, effects, cameras and what is written."""
+
     name: str = "scene"
     shape: Shape = field(default_factory=Shape)
     albedo: Albedo = field(default_factory=Albedo)
@@ -189,12 +201,15 @@ def _build(cls, data: Any):
 
 
 def scene_from_dict(d: dict, base_dir: str | Path = ".") -> Scene:
+    """A :class:`Scene` from a mapping (a scene file's content; unknown keys are errors); ``base_dir``: the folder
+    relative paths (a mesh) start from."""
     s = _build(Scene, d)
     s.base_dir = str(base_dir)
     return s
 
 
 def load_scene_file(path: str | Path) -> Scene:
+    """A :class:`Scene` from a YAML scene file (relative paths in it start from its folder)."""
     path = Path(path)
     try:
         d = yaml.safe_load(path.read_text())

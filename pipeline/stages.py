@@ -1,0 +1,193 @@
+"""The pipeline API: the stage table, :func:`run_stage` and :func:`reconstruct`.
+
+Every caller drives stages through here: the CLI (``python -m pipeline <stage>``, ``python -m pipeline
+reconstruct``), ``make reconstruct``, the tests and the bench. A stage is one row of :data:`STAGES`: its name, its
+options (a config dataclass, which becomes the field ``<name>`` of :class:`pipeline.config.Config` and the CLI
+namespace ``--<name>.*``), its body (the stage module's ``run(job)``), what it requires, what makes it stale and
+what it writes. Adding a stage is adding its row (and its module). :func:`run_stage` owns the bookkeeping every
+stage shares (require the inputs, skip when up to date, clear the stamp, time the body, stamp it done); the bodies
+only work.
+See docs/design.md, "Stage contracts".
+
+    from pipeline.stages import reconstruct, run_stage
+    from pipeline.config import load_config
+
+    cfg = load_config("configs/fast.yaml")
+    reconstruct("photos/", "work/vase", cfg)            # every stage, each skipped when up to date
+    run_stage("texture", "work/vase", cfg, force=True)  # one stage again
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from dvr.trainer import TrainConfig
+
+from . import cameras, depth, masks, mesh, report, texture, train
+from .workspace import Done, Job, Sources, StageError, Workspace, config_hash
+
+if TYPE_CHECKING:  # config.py builds Config from this table
+    from .config import Config
+
+Paths = Callable[[Workspace], list[Path]]
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One row of the stage table."""
+
+    name: str
+    """Command name (``python -m pipeline <name>``, ``make <name>``) and stamp name (``.stages/<name>.json``)."""
+    summary: str
+    """One line for ``--help``: what it does, reads and writes."""
+    body: Callable[[Job], Done | None]
+    """The stage's work (its module's ``run``): None when it stopped early on request (training's ``stop_after``)."""
+    options: type | None
+    """Its config dataclass (field ``<name>`` of :class:`~pipeline.config.Config`, CLI options ``--<name>.*``, YAML
+    section ``<name>:``); None: no options."""
+    requires: Callable[[Workspace], list[tuple[Path, str]]]
+    """Paths that must exist, each with the stage that writes it (named in the error)."""
+    inputs: Callable[[Workspace, Sources], list[Path]]
+    """Paths whose modification makes the stage stale (missing ones are ignored)."""
+    outputs: Paths
+    """Paths the stage writes; the first is shown as its product. All must exist for it to be up to date."""
+    sources: tuple[str, ...] = ()
+    """Fields of :class:`~pipeline.workspace.Sources` it reads (CLI options; part of its config hash)."""
+    from_photos: bool = False
+    """:func:`reconstruct` runs it only when given photos (or, for masks, a masks folder): a workspace made by
+    ``python -m pipeline synth`` already has its images, masks and cameras."""
+    always: bool = False
+    """Run even when up to date (the report: cheap, and it shows the latest state)."""
+
+    @property
+    def section(self) -> str | None:
+        """Its field of :class:`~pipeline.config.Config` (its name), None without options."""
+        return self.name if self.options is not None else None
+
+
+def _mask_files(ws: Workspace) -> list[Path]:
+    from dvr.data import list_images
+
+    return [ws.masks] + [ws.masks / f"{p.stem}.png" for p in list_images(ws.images)]
+
+
+STAGES: tuple[Stage, ...] = (
+    Stage("cameras", "Estimate cameras with COLMAP (reads the photos; writes sfm/, images/, cameras.npz, points.ply).",
+          cameras.run, cameras.CamerasConfig,
+          requires=lambda ws: [],
+          inputs=lambda ws, src: [p for p in (src.images, src.given_cameras) if p is not None],
+          outputs=lambda ws: [ws.cameras, ws.images, ws.root / "points.ply"],
+          sources=("images", "given_cameras"), from_photos=True),
+    Stage("masks", "Object masks (reads images/, cameras.npz, sfm/; writes masks/*.png, masks/overlays/, "
+          "masks/confidence.json).", masks.run, masks.MasksConfig,
+          requires=lambda ws: [(ws.images, "cameras"), (ws.cameras, "cameras")],
+          inputs=lambda ws, src: [ws.images, ws.cameras] + ([src.masks_dir] if src.masks_dir else []),
+          outputs=_mask_files, sources=("masks_dir",), from_photos=True),
+    Stage("depth", "Sparse depth from the SfM tracks (reads sfm/, cameras.npz; writes depth/*.npz).",
+          depth.run, depth.DepthConfig,
+          requires=lambda ws: [(ws.images, "cameras"), (ws.cameras, "cameras")],
+          inputs=lambda ws, src: [ws.cameras, ws.root / "sfm"],
+          outputs=lambda ws: [ws.depth], from_photos=True),
+    Stage("train", "Train the DVR occupancy and texture fields (reads images/, masks/, depth/, cameras.npz; writes "
+          "model/).", train.run, TrainConfig,
+          requires=lambda ws: [(ws.images, "cameras"), (ws.masks, "masks"), (ws.cameras, "cameras")],
+          inputs=lambda ws, src: [ws.images, ws.masks, ws.cameras] + ([ws.depth] if ws.depth.exists() else []),
+          outputs=lambda ws: [ws.model / "final.pt"]),
+    Stage("mesh", "Extract and clean the mesh (reads model/; writes mesh/raw.ply and mesh/clean.ply).",
+          mesh.run, mesh.MeshConfig,
+          requires=lambda ws: [(ws.model / "final.pt", "train")],
+          inputs=lambda ws, src: [ws.model / "final.pt"],
+          outputs=lambda ws: [ws.mesh / "clean.ply", ws.mesh / "raw.ply"]),
+    Stage("texture", "UV-texture the clean mesh from the photos (reads mesh/clean.ply, model/, images/, "
+          "cameras.npz; writes mesh/textured.obj/.mtl/.png and mesh/textured.glb).", texture.run, texture.TextureConfig,
+          requires=lambda ws: [(ws.mesh / "clean.ply", "mesh"), (ws.images, "cameras"), (ws.cameras, "cameras")],
+          inputs=lambda ws, src: [ws.mesh / "clean.ply", ws.images, ws.cameras, ws.model / "final.pt",
+                                  ws.model / "appearance.json"],
+          outputs=lambda ws: [ws.mesh / f"textured.{e}" for e in ("glb", "obj", "mtl", "png")]),
+    Stage("report", "Write report.html: stage times, SfM summary, mask overlays, curves, renders, interactive "
+          "mesh viewer.", report.run, None,
+          requires=lambda ws: [(ws.root, "cameras")],
+          inputs=lambda ws, src: [],
+          outputs=lambda ws: [ws.root / "report.html"], always=True),
+)
+"""The stages in the order :func:`reconstruct` runs them."""
+
+
+def stage_named(name: str) -> Stage:
+    """The row of :data:`STAGES` called ``name`` (ValueError naming the stages otherwise)."""
+    for stage in STAGES:
+        if stage.name == name:
+            return stage
+    raise ValueError(f"{name}: no such stage; stages: {', '.join(s.name for s in STAGES)}")
+
+
+def _sources(stage: Stage, images=None, masks_dir=None, given_cameras=None) -> Sources:
+    given = {"images": images, "masks_dir": masks_dir, "given_cameras": given_cameras}
+    unused = [k for k, v in given.items() if v is not None and k not in stage.sources]
+    if unused:
+        raise ValueError(f"stage {stage.name} takes no {', '.join(unused)}")
+    return Sources(**{k: Path(v).resolve() if v is not None else None for k, v in given.items()})
+
+
+def _check_sources(stage: Stage, ws: Workspace, src: Sources) -> None:
+    if stage.name != "cameras":
+        return
+    if src.images is None:
+        raise StageError(f"{ws.root}: the cameras stage needs --images DIR (the photos)")
+    if ws.root == src.images or src.images in ws.root.parents:
+        raise StageError(f"{ws.root}: the workspace must not be the photo folder or inside it; choose another OUT")
+
+
+def run_stage(name: str, workspace: str | Path | Workspace, config: Config | None = None, force: bool = False, *,
+              images: str | Path | None = None, masks_dir: str | Path | None = None,
+              given_cameras: str | Path | None = None, stop_after: int | None = None) -> bool:
+    """Run stage ``name`` in ``workspace`` with ``config`` (defaults without one) unless it is up to date;
+    returns whether it ran. ``images``, ``masks_dir`` and ``given_cameras`` are the user's paths for the stages that
+    read them; ``stop_after`` stops training early (tests of resuming). Raises StageError (one line: the file and
+    the fix) on bad input."""
+    from .config import Config
+
+    stage = stage_named(name)
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    config = config or Config()
+    src = _sources(stage, images, masks_dir, given_cameras)
+    _check_sources(stage, ws, src)
+    for path, producer in stage.requires(ws):
+        ws.require(path, hint=f"run the {producer} stage first")
+    cfg = getattr(config, stage.section) if stage.section else None
+    h = config_hash({"cfg": dataclasses.asdict(cfg) if cfg is not None else None,
+                     **{k: str(getattr(src, k)) for k in stage.sources}})
+    outputs = stage.outputs(ws)
+    if not force and not stage.always and ws.up_to_date(name, h, stage.inputs(ws, src), outputs):
+        print(f"{name}: up to date ({outputs[0]})")
+        return False
+    ws.clear(name)
+    t0 = time.perf_counter()
+    done = stage.body(Job(ws, cfg, src, force, h, stop_after))
+    if done is None:  # stopped early on request; the next run resumes
+        return True
+    seconds = done.seconds if done.seconds is not None else time.perf_counter() - t0
+    ws.mark_done(name, h, seconds, done.details)
+    return True
+
+
+def reconstruct(images: str | Path | None, workspace: str | Path, config: Config | None = None, *,
+                masks_dir: str | Path | None = None, given_cameras: str | Path | None = None,
+                force: bool = False) -> Path:
+    """Every stage in order, each skipped when up to date (a killed run resumes where it stopped); returns the
+    textured GLB. Without ``images`` the workspace must already hold images/, masks/ and cameras.npz (as
+    ``python -m pipeline synth`` writes them); ``masks_dir`` gives user masks, ``given_cameras`` skips SfM."""
+    ws = Workspace(workspace)
+    if images is None and not ws.cameras.exists():
+        raise StageError(f"{ws.root}: no photos given and no cameras.npz there; pass the photo folder (--images DIR)")
+    given = {"images": images, "masks_dir": masks_dir, "given_cameras": given_cameras}
+    for stage in STAGES:
+        if stage.from_photos and images is None and not (stage.name == "masks" and masks_dir is not None):
+            continue
+        run_stage(stage.name, ws, config, force, **{k: given[k] for k in stage.sources})
+    return ws.mesh / "textured.glb"

@@ -1,0 +1,105 @@
+"""The pipeline API (pipeline/stages.py): the bookkeeping run_stage owns, bad input, and reconstruct end to end."""
+
+import json
+import shutil
+
+import pytest
+
+from pipeline import stages
+from pipeline.config import Config
+from pipeline.stages import Stage, reconstruct, run_stage
+from pipeline.workspace import Done, StageError, Workspace
+
+
+def _counting_stage(calls: list, name="count"):
+    """A stage of the table's shape that copies a file and counts its runs."""
+
+    def body(job):
+        calls.append(job.config_hash)
+        (job.ws.root / "out.txt").write_text((job.ws.root / "in.txt").read_text())
+        return Done({"chars": len((job.ws.root / "out.txt").read_text())})
+
+    return Stage(name, "copy in.txt to out.txt", body, None,
+                 requires=lambda ws: [(ws.root / "in.txt", "make-input")],
+                 inputs=lambda ws, src: [ws.root / "in.txt"], outputs=lambda ws: [ws.root / "out.txt"])
+
+
+def test_run_stage_skips_when_up_to_date_and_reruns_when_stale_or_forced(tmp_path, monkeypatch, capsys):
+    calls = []
+    monkeypatch.setattr(stages, "STAGES", (*stages.STAGES, _counting_stage(calls)))
+    (tmp_path / "in.txt").write_text("abc")
+    assert run_stage("count", tmp_path) is True
+    stamp = Workspace(tmp_path).stamp("count")
+    assert stamp["chars"] == 3 and stamp["seconds"] >= 0 and len(calls) == 1
+    assert run_stage("count", tmp_path) is False and "count: up to date" in capsys.readouterr().out
+    assert run_stage("count", tmp_path, force=True) is True and len(calls) == 2
+    import os
+
+    t = Workspace(tmp_path).stages / "count.json"
+    os.utime(tmp_path / "in.txt", (t.stat().st_mtime + 5, t.stat().st_mtime + 5))  # a newer input: stale
+    assert run_stage("count", tmp_path) is True and len(calls) == 3
+    (tmp_path / "out.txt").unlink()  # a missing output: stale
+    assert run_stage("count", tmp_path) is True and len(calls) == 4
+
+
+def test_a_failing_rerun_removes_the_old_stamp(tmp_path, monkeypatch):
+    """A stage that finished once and then fails when redone is no longer done: the later stages see it."""
+    fail = []
+
+    def body(job):
+        if fail:
+            raise StageError(f"{job.ws.root}: broken on purpose")
+        (job.ws.root / "x").write_text("x")
+        return Done()
+
+    flaky = Stage("flaky", "fails the second time", body, None, requires=lambda ws: [], inputs=lambda ws, src: [],
+                  outputs=lambda ws: [ws.root / "x"])
+    monkeypatch.setattr(stages, "STAGES", (*stages.STAGES, flaky))
+    run_stage("flaky", tmp_path)
+    assert Workspace(tmp_path).stamp("flaky") is not None
+    fail.append(True)
+    with pytest.raises(StageError, match="broken on purpose"):
+        run_stage("flaky", tmp_path, force=True)
+    assert Workspace(tmp_path).stamp("flaky") is None
+
+
+def test_run_stage_names_the_missing_input_and_its_stage(tmp_path):
+    with pytest.raises(StageError, match=r"final\.pt: missing; run the train stage first"):
+        run_stage("mesh", tmp_path)
+    with pytest.raises(ValueError, match="no such stage"):
+        run_stage("paint", tmp_path)
+    with pytest.raises(ValueError, match="takes no images"):
+        run_stage("train", tmp_path, images=tmp_path)
+    with pytest.raises(StageError, match="needs --images"):
+        run_stage("cameras", tmp_path)
+    with pytest.raises(StageError, match="no photos given and no cameras.npz"):
+        reconstruct(None, tmp_path)
+
+
+def test_stage_options_are_config_fields():
+    cfg = Config()
+    for stage in stages.STAGES:
+        if stage.options is not None:
+            assert isinstance(getattr(cfg, stage.name), stage.options)
+    assert [s.name for s in stages.STAGES if s.options is None] == ["report"]
+
+
+def test_reconstruct_a_synthetic_workspace_then_nothing_to_do(small_ws, tmp_path, capsys):
+    """Without photos, reconstruct runs train → mesh → texture → report on a workspace made by synth; a second call
+    redoes nothing but the report."""
+    ws = tmp_path / "ws"
+    shutil.copytree(small_ws, ws)
+    cfg = Config()
+    cfg.train.iterations, cfg.train.batch_rays, cfg.train.progress, cfg.train.preview_every = 30, 256, False, 0
+    cfg.train.hull_res, cfg.train.field.base_res, cfg.train.field.plane_res = 32, 32, (16, 32)
+    cfg.mesh.resolution, cfg.mesh.max_faces, cfg.texture.size = 64, 3000, 128
+    glb = reconstruct(None, ws, cfg)
+    assert glb == (ws / "mesh" / "textured.glb").resolve() and glb.exists() and (ws / "report.html").exists()
+    done = {p.stem: json.loads(p.read_text())["finished"] for p in (ws / ".stages").glob("*.json")}
+    assert set(done) == {"train", "mesh", "texture", "report"}  # no photos: cameras, masks, depth not run
+    capsys.readouterr()
+    reconstruct(None, ws, cfg)
+    out = capsys.readouterr().out
+    assert all(f"{s}: up to date" in out for s in ("train", "mesh", "texture"))
+    again = {p.stem: json.loads(p.read_text())["finished"] for p in (ws / ".stages").glob("*.json")}
+    assert {k: v for k, v in again.items() if k != "report"} == {k: v for k, v in done.items() if k != "report"}
