@@ -9,7 +9,7 @@ WS      ?= $(OUT)
 FORCE   ?=
 ARGS    ?=
 
-.PHONY: setup setup-web lint test test-fast board synth print-stages $(STAGES) bench-core bench bench-quick reconstruct
+.PHONY: setup setup-web lint test test-fast board synth print-stages $(STAGES) batch bench-core bench bench-quick reconstruct
 
 # everything: the Python environment, and the report's 3-D viewer (model-viewer) where npm exists
 setup: .venv/.installed
@@ -58,6 +58,15 @@ $(STAGES): setup
 	$(PY) -m pipeline $@ "$(WS)" --config "$(CONFIG)" $(if $(FORCE),--force) \
 	  $(if $(filter cameras,$@),$(if $(IMAGES),--images "$(IMAGES)") $(if $(CAMERAS),--given-cameras "$(CAMERAS)")) \
 	  $(if $(filter masks,$@),$(if $(MASKS),--masks-dir "$(MASKS)")) $(ARGS)
+
+# many captures at once on Ray: make batch CAPTURES=dir [OUT=dir] [CONFIG=file] [ADDRESS=ray-address]
+CAPTURES ?=
+ADDRESS  ?=
+batch: setup
+	@if [ -z "$(CAPTURES)" ]; then echo "usage: make batch CAPTURES=dir [OUT=dir] [CONFIG=file] [ADDRESS=host:port]"; \
+	  exit 2; fi
+	$(PY) -m pipeline batch "$(CAPTURES)" $(if $(OUT),"$(OUT)") --config "$(CONFIG)" \
+	  $(if $(ADDRESS),--batch.address "$(ADDRESS)") $(ARGS)
 
 bench-core: setup
 	$(PY) bench/core.py

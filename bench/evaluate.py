@@ -30,6 +30,7 @@ SCENES = {
     "sphere": ROOT / "configs" / "scenes" / "sphere_checker.yaml",
     "torus_board": ROOT / "configs" / "scenes" / "torus_board.yaml",
     "sphere_board": ROOT / "configs" / "scenes" / "sphere_checker_board.yaml",
+    "e2e": ROOT / "configs" / "scenes" / "e2e_floor.yaml",  # the small torus on a floor (bench/batch.py)
 }
 HELDOUT = "heldout_"
 """Prefix of the held-out photos in a photos-only run's folder (sorted after the training photos)."""

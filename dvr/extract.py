@@ -87,6 +87,7 @@ def footprint_occupancy(field: Field, height: float) -> LogitFn:
         return field.occupancy
 
     def occupancy(p: torch.Tensor) -> torch.Tensor:
+        """The field's logits, points in the contact band read at the band's top (the footprint's extrusion)."""
         pl = field.support.to(device=p.device, dtype=p.dtype)
         h = p @ pl[:3] + pl[3]
         lift = torch.where(in_contact_band(h, height), height - h, torch.zeros_like(h))

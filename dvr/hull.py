@@ -49,6 +49,7 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
                          f"{tuple(masks.shape)}")
 
     def outside(p: torch.Tensor) -> torch.Tensor:
+        """The test above for one chunk of points."""
         vals, seen = mask_lookup(p, P, masks, sizes)
         n_out = ((vals < 0.5) & seen).sum(0)
         need = torch.full_like(n_out, min_views)

@@ -93,13 +93,14 @@ def _command_class(name: str, summary: str, sections: list[str], sources: tuple[
     return cls
 
 
-def _parse(cls, sections: list[str], argv: list[str], prog: str):
-    """tyro over ``cls``, its config sections defaulting to the ``--config`` preset's."""
+def _parse(cls, sections: list[str], argv: list[str], prog: str, required: str = "workspace"):
+    """tyro over ``cls``, its config sections defaulting to the ``--config`` preset's (``required``: the field
+    without a default)."""
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--config", type=Path, default=None)
     known, _ = pre.parse_known_args(argv)
     cfg = load_config(known.config)
-    default = cls(workspace=tyro.MISSING, config=known.config, **{s: getattr(cfg, s) for s in sections})
+    default = cls(**{required: tyro.MISSING}, config=known.config, **{s: getattr(cfg, s) for s in sections})
     return tyro.cli(cls, default=default, args=argv, prog=prog, description=cls.__doc__)
 
 
@@ -133,6 +134,39 @@ def _reconstruct(argv: list[str]) -> None:
     print(f"done: {glb}  report: {glb.parents[1] / 'report.html'}")
 
 
+def _batch_class():
+    from .batch import BatchConfig
+
+    fields = [("captures", tyro.conf.Positional[Annotated[Path, tyro.conf.arg(
+                  metavar="CAPTURES", help="Folder of capture folders: one sub-folder of photos per object (with "
+                  "optional masks/ and cameras.npz).")]]),
+              ("out", tyro.conf.Positional[Annotated[Optional[Path], tyro.conf.arg(
+                  metavar="OUT", help="Output folder: a workspace per capture, summary.json, index.html "
+                  "(default: work/<name of CAPTURES>).")]], dataclasses.field(default=None)),
+              ("batch", Annotated[BatchConfig, tyro.conf.arg(help=BatchConfig.__doc__)],
+               dataclasses.field(default_factory=BatchConfig))]
+    fields += [f for f in _arguments(RECONSTRUCT_SECTIONS, ()) if f[0] not in ("workspace", "force")]
+    cls = dataclasses.make_dataclass("BatchCommand", fields)
+    cls.__doc__ = "Reconstruct many captures at once on Ray (a local cluster, or --batch.address)."
+    return cls
+
+
+COMMAND_CLASSES["batch"] = _batch_class()
+
+
+def _batch(argv: list[str]) -> None:
+    from .batch import run_batch
+
+    a = _parse(COMMAND_CLASSES["batch"], RECONSTRUCT_SECTIONS, argv, "python -m pipeline batch", "captures")
+    out = a.out or Path("work") / Path(a.captures).resolve().name
+    summary = run_batch(a.captures, out, _config_of(a, RECONSTRUCT_SECTIONS), a.batch)
+    print(f"batch: {summary['done']}/{summary['captures']} captures done in {summary['wall_seconds']:.0f} s "
+          f"→ {Path(out) / 'index.html'}")
+    if summary["failed"]:
+        raise StageError(f"{summary['failed']} of {summary['captures']} captures failed (each with its one-line "
+                         f"error in {Path(out) / 'index.html'}); fix them and rerun: finished captures are skipped")
+
+
 def _synth(argv):
     from .synth import load_scene_file, write_scene
 
@@ -153,7 +187,7 @@ def _board(argv):
 
 
 COMMANDS = {"synth": _synth, **{s.name: _stage_command(s) for s in STAGES}, "reconstruct": _reconstruct,
-            "board": _board}
+            "batch": _batch, "board": _board}
 
 
 def main(argv: list[str] | None = None) -> int:

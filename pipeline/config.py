@@ -20,6 +20,7 @@ from .stages import STAGES
 
 Config = dataclasses.make_dataclass(
     "Config", [(s.name, s.options, field(default_factory=s.options)) for s in STAGES if s.options is not None])
+Config.__module__ = __name__  # pickles by name (Ray sends configs to its workers)
 Config.__doc__ = """All stage configs: a field per stage of :data:`pipeline.stages.STAGES` that has options, named
 after it (``cfg.train.iterations``; YAML ``train: {iterations: …}``; CLI ``--train.iterations``)."""
 

@@ -163,8 +163,9 @@ def appearance_section(ws: Workspace) -> str:
             f"<th>gain B</th></tr>{rows}</table>")
 
 
-def build(ws: Workspace) -> str:
-    """The self-contained HTML of the report: stage table, capture, masks, training curves, renders, viewer."""
+def build(ws: Workspace, stats: dict | None = None) -> str:
+    """The self-contained HTML of the report: stage table, capture, masks, training curves, renders, viewer.
+    ``stats`` (when given) receives the mean PSNR of the renders: ``psnr`` and ``psnr_views`` (held-out or training)."""
     secs = ws.seconds()
     stamps = {}
     for p in sorted(ws.stages.glob("*.json")) if ws.stages.exists() else []:
@@ -196,6 +197,10 @@ def build(ws: Workspace) -> str:
             parts.append("<p>(interactive viewer: run <code>make setup-web</code> to install model-viewer, then "
                          "rerun the report stage)</p>")
     ren = renders(ws, out_dir=rep)
+    if stats is not None and ren:  # the mean PSNR of the held-out views when there are any, else the photos'
+        tag_of = "held-out" if ren[0][0].startswith("held-out") else "view"
+        stats.update(psnr=float(np.mean([p for tag, _, p in ren if tag.startswith(tag_of)])),
+                     psnr_views="held-out" if tag_of == "held-out" else "training")
     if ren:
         parts.append("<h2>Photos (left) and the textured mesh (right)</h2>")
         for tag, uri, p in ren:
@@ -222,9 +227,10 @@ def build(ws: Workspace) -> str:
 def run(job: Job) -> Done:
     """Stage ``report`` (called by :func:`pipeline.stages.run_stage`, always): report.html from what the
     workspace holds so far."""
-    doc = build(job.ws)
+    stats: dict = {}
+    doc = build(job.ws, stats)
     out = job.ws.root / "report.html"
     out.write_text(doc)
     print(f"report: {out} ({len(doc) / 1e6:.1f} MB)")
-    return Done()
+    return Done(stats)
 

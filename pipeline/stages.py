@@ -70,6 +70,11 @@ class Stage:
         return self.name if self.options is not None else None
 
 
+def _sfm_model(ws: Workspace) -> Path:
+    """The undistorted SfM model the depth stage reads (none with given cameras that were not triangulated)."""
+    return ws.root / "sfm" / "undistorted" / "sparse"
+
+
 def _mask_files(ws: Workspace) -> list[Path]:
     from dvr.data import list_images
 
@@ -92,7 +97,7 @@ STAGES: tuple[Stage, ...] = (
           depth.run, depth.DepthConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.cameras, ws.root / "sfm"],
-          outputs=lambda ws: [ws.depth], from_photos=True),
+          outputs=lambda ws: [ws.depth] if _sfm_model(ws).exists() else [], from_photos=True),
     Stage("train", "Train the DVR occupancy and texture fields (reads images/, masks/, depth/, cameras.npz; writes "
           "model/).", train.run, TrainConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.masks, "masks"), (ws.cameras, "cameras")],
@@ -143,6 +148,29 @@ def _check_sources(stage: Stage, ws: Workspace, src: Sources) -> None:
         raise StageError(f"{ws.root}: the workspace must not be the photo folder or inside it; choose another OUT")
 
 
+def _stage_hash(stage: Stage, cfg, src: Sources) -> str:
+    return config_hash({"cfg": dataclasses.asdict(cfg) if cfg is not None else None,
+                        **{k: str(getattr(src, k)) for k in stage.sources}})
+
+
+def is_up_to_date(name: str, workspace: str | Path | Workspace, config: Config | None = None, *,
+                  images: str | Path | None = None, masks_dir: str | Path | None = None,
+                  given_cameras: str | Path | None = None) -> bool:
+    """Whether :func:`run_stage` with these arguments would skip stage ``name`` (an ``always`` stage: whether it
+    has run once)."""
+    from .config import Config
+
+    stage = stage_named(name)
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    src = _sources(stage, images, masks_dir, given_cameras)
+    if stage.always:
+        return ws.stamp(name) is not None
+    cfg = getattr(config or Config(), stage.section) if stage.section else None
+    if not all(p.exists() for p, _ in stage.requires(ws)):
+        return False
+    return ws.up_to_date(name, _stage_hash(stage, cfg, src), stage.inputs(ws, src), stage.outputs(ws))
+
+
 def run_stage(name: str, workspace: str | Path | Workspace, config: Config | None = None, force: bool = False, *,
               images: str | Path | None = None, masks_dir: str | Path | None = None,
               given_cameras: str | Path | None = None, stop_after: int | None = None) -> bool:
@@ -160,11 +188,10 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
     for path, producer in stage.requires(ws):
         ws.require(path, hint=f"run the {producer} stage first")
     cfg = getattr(config, stage.section) if stage.section else None
-    h = config_hash({"cfg": dataclasses.asdict(cfg) if cfg is not None else None,
-                     **{k: str(getattr(src, k)) for k in stage.sources}})
+    h = _stage_hash(stage, cfg, src)
     outputs = stage.outputs(ws)
     if not force and not stage.always and ws.up_to_date(name, h, stage.inputs(ws, src), outputs):
-        print(f"{name}: up to date ({outputs[0]})")
+        print(f"{name}: up to date ({outputs[0] if outputs else ws.root})")
         return False
     ws.clear(name)
     t0 = time.perf_counter()

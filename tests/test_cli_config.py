@@ -57,12 +57,13 @@ def _options(cls) -> set[str]:
 
 def test_every_option_the_readme_and_makefile_name_parses():
     """Each ``--section.option`` the README or the Makefile names is an option of ``python -m pipeline
-    reconstruct`` (the one namespace per stage every stage command shares), and each path option exists."""
+    reconstruct`` (the one namespace per stage every stage command shares) or of ``batch``, and each path option
+    exists."""
     import re
 
     from pipeline.cli import COMMAND_CLASSES
 
-    known = _options(COMMAND_CLASSES["reconstruct"])
+    known = _options(COMMAND_CLASSES["reconstruct"]) | _options(COMMAND_CLASSES["batch"])
     text = (ROOT / "README.md").read_text() + (ROOT / "Makefile").read_text()
     named = set(re.findall(r"--[a-z][a-z0-9-]*\.[a-z][a-z0-9-]*[a-z0-9]", text))
     assert len(named) >= 10  # the README documents options; the pattern finds them

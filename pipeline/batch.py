@@ -1,0 +1,201 @@
+"""Many captures at once on Ray: ``python -m pipeline batch CAPTURES [OUT]`` / ``make batch CAPTURES=dir``.
+
+Every sub-folder of CAPTURES is one capture: its photos (directly in it, or in ``images/``), optionally ``masks/``
+(user masks) and ``cameras.npz`` (given cameras). Each gets the workspace ``OUT/<sub-folder>`` and the stages of
+:data:`pipeline.stages.STAGES`, each stage one Ray task calling :func:`pipeline.stages.run_stage` (the API the CLI
+calls, so a batch run and a single run write the same files). A capture's stages form a chain (each task waits
+for the one before); the chains of different captures overlap. Resources: every stage asks for
+``cpus_per_stage`` cores (its torch threads); training also asks for ``train_gpus`` GPUs when the cluster has
+any. A stage's own error (a one-line StageError) ends its capture's chain and is reported; the others go on. A
+worker that dies (killed process, lost node) has its stage retried ``retries`` times. Re-running the batch skips
+the captures that are done (every stage up to date) and, inside the others, the stages that are.
+
+Without ``--address`` Ray starts a local cluster on this machine; with one (``ray start --head`` prints it, or
+``auto``) the same command runs on that cluster. Writes ``OUT/summary.json`` and ``OUT/index.html``
+(:mod:`pipeline.batch_summary`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+from .stages import STAGES, is_up_to_date, run_stage
+from .workspace import StageError
+
+
+@dataclass
+class BatchConfig:
+    """Batch reconstruction on Ray (``python -m pipeline batch``)."""
+
+    address: str | None = None
+    """Ray cluster to run on (``ray start --head`` prints its address; ``auto``: the cluster this node joined);
+    None: start a local Ray cluster on this machine for the batch."""
+    cpus_per_stage: int = 1
+    """CPU cores each stage task asks for (and its torch threads): on 2 cores, two stages of different captures
+    run at once."""
+    train_gpus: float = 1.0
+    """GPUs the train stage asks for when the cluster has any (its device is then CUDA); 0: train on CPU cores."""
+    retries: int = 2
+    """Retries of a stage whose worker died (killed, out of memory, node lost); a stage's own error is final."""
+
+
+@dataclass(frozen=True)
+class Capture:
+    """One sub-folder of the captures folder and its workspace."""
+
+    name: str
+    photos: Path
+    workspace: Path
+    masks_dir: Path | None = None
+    given_cameras: Path | None = None
+
+    def sources(self, stage) -> dict:
+        """The user paths ``stage`` reads (keyword arguments of :func:`~pipeline.stages.run_stage`)."""
+        given = {"images": self.photos, "masks_dir": self.masks_dir, "given_cameras": self.given_cameras}
+        return {k: given[k] for k in stage.sources}
+
+
+def find_captures(captures: Path, out: Path) -> list[Capture]:
+    """The captures under ``captures`` (sorted sub-folders); StageError when there are none or ``out`` lies
+    inside one of them."""
+    captures, out = Path(captures).resolve(), Path(out).resolve()
+    if not captures.is_dir():
+        raise StageError(f"{captures}: not a folder; CAPTURES must be a folder of capture folders (one per object)")
+    found = []
+    for sub in sorted(p for p in captures.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        if sub == out or sub in out.parents:
+            continue  # OUT inside CAPTURES: not a capture
+        photos = sub / "images" if (sub / "images").is_dir() else sub
+        found.append(Capture(sub.name, photos, out / sub.name, sub / "masks" if (sub / "masks").is_dir() else None,
+                             sub / "cameras.npz" if (sub / "cameras.npz").is_file() else None))
+    if not found:
+        raise StageError(f"{captures}: no capture folders in it; put each object's photos in its own sub-folder")
+    return found
+
+
+def capture_done(cap: Capture, config) -> bool:
+    """Whether every stage of ``cap`` is up to date (the report: written once)."""
+    try:
+        return all(is_up_to_date(s.name, cap.workspace, config, **cap.sources(s)) for s in STAGES)
+    except (StageError, ValueError, OSError):
+        return False
+
+
+def run_stage_task(capture: Capture, stage_name: str, config, threads: int, upstream: dict | None) -> dict:
+    """One stage of one capture, in a Ray worker: its output goes to ``<workspace>/logs/<stage>.log``; returns a
+    record (capture, stage, status ok/failed/skipped, ran, seconds, error)."""
+    rec = {"capture": capture.name, "stage": stage_name, "status": "skipped", "ran": False, "seconds": 0.0}
+    if upstream is not None and upstream["status"] != "ok":
+        return rec  # an earlier stage of this capture failed
+    import torch
+
+    torch.set_num_threads(max(1, threads))
+    stage = next(s for s in STAGES if s.name == stage_name)
+    logs = capture.workspace / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with open(logs / f"{stage_name}.log", "a") as log, contextlib.redirect_stdout(log), \
+            contextlib.redirect_stderr(log):
+        try:
+            rec["ran"] = run_stage(stage_name, capture.workspace, config, **capture.sources(stage))
+            rec["status"] = "ok"
+        except (StageError, FileNotFoundError, ValueError) as exc:  # the one-line error a single run prints
+            rec.update(status="failed", error=_one_line(exc))
+            print(f"error: {rec['error']}", file=sys.stderr)
+        except Exception as exc:  # noqa: BLE001 - a bug: its traceback goes to the log, one line to the summary
+            traceback.print_exc()
+            rec.update(status="failed", error=f"internal error ({type(exc).__name__}: {_one_line(exc)}); "
+                                              f"traceback in {logs / (stage_name + '.log')}")
+    rec["seconds"] = round(time.perf_counter() - t0, 3)
+    return rec
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _task_options(stage, batch: BatchConfig, has_gpu: bool) -> dict:
+    """Ray resources of one stage task: CPU cores, a GPU for training where the cluster has one, retries."""
+    opts = {"num_cpus": batch.cpus_per_stage, "max_retries": batch.retries}
+    if stage.name == "train" and has_gpu and batch.train_gpus > 0:
+        opts["num_gpus"] = batch.train_gpus
+    return opts
+
+
+def _start_ray(address: str | None):
+    """Connect to the cluster at ``address``, or start a local one (quiet: stages log to their workspace)."""
+    import logging
+
+    import ray
+
+    kw = {"address": address} if address else {"object_store_memory": 256 * 1024**2}
+    ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING, **kw)
+    return ray
+
+
+def _progress_line(rec: dict, done: int, total: int) -> str:
+    what = {"ok": "done" if rec["ran"] else "up to date", "failed": f"FAILED: {rec.get('error', '')}"}[rec["status"]]
+    return f"[{done}/{total}] {rec['capture']}: {rec['stage']} {what} ({rec['seconds']:.1f} s)"
+
+
+def _collect(ray, pending: dict, records: dict, total: int) -> None:
+    """Wait for the stage tasks, one progress line per finished stage and an overall bar (stderr)."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, unit="stage", file=sys.stderr, dynamic_ncols=True)
+    failed: set[str] = set()
+    while pending:
+        (ref,), _ = ray.wait(list(pending), num_returns=1)
+        cap, stage_name = pending.pop(ref)
+        try:
+            rec = ray.get(ref)
+        except Exception as exc:  # noqa: BLE001 - the worker died more often than retried, or upstream did
+            rec = {"capture": cap.name, "stage": stage_name, "ran": False, "seconds": 0.0,
+                   "status": "skipped" if cap.name in failed else "failed",
+                   "error": f"worker lost after retries ({type(exc).__name__})"}
+        failed |= {cap.name} if rec["status"] == "failed" else set()
+        records[cap.name].append(rec)
+        bar.update(1)
+        if rec["status"] != "skipped":
+            bar.write(_progress_line(rec, bar.n, total))
+    bar.close()
+
+
+def run_batch(captures: Path, out: Path, config=None, batch: BatchConfig | None = None) -> dict:
+    """Reconstruct every capture under ``captures`` into ``out/<capture>`` on Ray; returns the summary (also
+    written as ``out/summary.json`` and ``out/index.html``). Captures already done are not touched."""
+    from .batch_summary import write_summary
+    from .config import Config
+
+    config, batch = config or Config(), batch or BatchConfig()
+    out = Path(out).resolve()
+    caps = find_captures(captures, out)
+    out.mkdir(parents=True, exist_ok=True)
+    records: dict[str, list] = {c.name: [] for c in caps}
+    todo = [c for c in caps if not capture_done(c, config)]
+    for c in caps:
+        if c not in todo:
+            print(f"{c.name}: up to date ({c.workspace / 'mesh' / 'textured.glb'})")
+    t0 = time.perf_counter()
+    if todo:
+        ray = _start_ray(batch.address)
+        try:
+            task = ray.remote(run_stage_task)
+            has_gpu = ray.cluster_resources().get("GPU", 0) > 0
+            pending = {}
+            for cap in todo:
+                upstream = None
+                for stage in STAGES:
+                    upstream = task.options(**_task_options(stage, batch, has_gpu)).remote(
+                        cap, stage.name, config, batch.cpus_per_stage, upstream)
+                    pending[upstream] = (cap, stage.name)
+            _collect(ray, pending, records, len(pending))
+        finally:
+            ray.shutdown()
+    return write_summary(out, caps, records, time.perf_counter() - t0)

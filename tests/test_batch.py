@@ -1,0 +1,91 @@
+"""Batch reconstruction on Ray (pipeline/batch.py): a good and a bad capture, the summary, and a rerun that does no
+work."""
+
+import json
+import shutil
+
+import pytest
+
+from pipeline.batch import BatchConfig, Capture, find_captures, run_batch
+from pipeline.cli import main
+from pipeline.stages import STAGES
+from pipeline.workspace import StageError
+
+TINY = ["--train.iterations", "30", "--train.batch-rays", "256", "--train.preview-every", "0", "--train.hull-res", "32",
+        "--train.field.base-res", "32", "--train.field.plane-res", "16", "32", "--mesh.resolution", "64",
+        "--mesh.max-faces", "3000", "--texture.size", "128", "--cameras.no-triangulate-given", "--train.no-progress"]
+
+
+def _captures(small_ws, root):
+    """good/: photos, masks/, cameras.npz (given: no SfM); too_few/: two photos."""
+    good, bad = root / "captures" / "good", root / "captures" / "too_few"
+    shutil.copytree(small_ws / "images", good / "images")
+    shutil.copytree(small_ws / "masks", good / "masks")
+    shutil.copy(small_ws / "cameras.npz", good / "cameras.npz")
+    bad.mkdir()
+    for p in sorted((small_ws / "images").glob("*.png"))[:2]:
+        shutil.copy(p, bad / p.name)
+    return root / "captures"
+
+
+def test_find_captures_layouts_and_bad_input(small_ws, tmp_path):
+    caps = find_captures(_captures(small_ws, tmp_path), tmp_path / "out")
+    assert [c.name for c in caps] == ["good", "too_few"]
+    good, bad = caps
+    assert good.photos.name == "images" and good.masks_dir.name == "masks" and good.given_cameras.name == "cameras.npz"
+    assert bad.photos == tmp_path / "captures" / "too_few" and bad.masks_dir is None and bad.given_cameras is None
+    assert good.workspace == (tmp_path / "out" / "good").resolve()
+    assert find_captures(tmp_path / "captures", tmp_path / "captures" / "out")[0].name == "good"  # OUT inside: skipped
+    with pytest.raises(StageError, match="no capture folders"):
+        find_captures(tmp_path / "captures" / "too_few", tmp_path / "out")
+    with pytest.raises(StageError, match="not a folder"):
+        find_captures(tmp_path / "nope", tmp_path / "out")
+
+
+def test_capture_sources_follow_the_stage_table():
+    cap = Capture("c", "/p", "/w", masks_dir="/m", given_cameras="/c.npz")
+    by_stage = {s.name: cap.sources(s) for s in STAGES}
+    assert by_stage["cameras"] == {"images": "/p", "given_cameras": "/c.npz"}
+    assert by_stage["masks"] == {"masks_dir": "/m"} and by_stage["train"] == {}
+
+
+def test_batch_good_and_bad_capture_then_nothing_to_do(small_ws, tmp_path, capsys):
+    from pipeline.config import config_from_args
+
+    captures, out = _captures(small_ws, tmp_path), tmp_path / "out"
+    cfg = config_from_args(None, TINY)
+    summary = run_batch(captures, out, cfg, BatchConfig(cpus_per_stage=1))
+    rows = {r["capture"]: r for r in summary["rows"]}
+    assert (out / "good" / "mesh" / "textured.glb").exists() and rows["good"]["status"] == "done"
+    assert rows["good"]["registered"] == rows["good"]["total"] == 8 and rows["good"]["psnr"] > 10
+    assert set(rows["good"]["seconds"]) == {s.name for s in STAGES}
+    assert rows["too_few"]["status"] == "failed" and rows["too_few"]["failed_stage"] == "cameras"
+    assert "at least 3 are needed" in rows["too_few"]["error"] and "\n" not in rows["too_few"]["error"]
+    assert not (out / "too_few" / "mesh").exists()
+    assert json.loads((out / "summary.json").read_text())["failed"] == 1
+    page = (out / "index.html").read_text()
+    assert "good/report.html" in page and "good/mesh/textured.glb" in page and "at least 3 are needed" in page
+    stamps = {p.name: p.stat().st_mtime_ns for p in (out / "good" / ".stages").glob("*.json")}
+    capsys.readouterr()
+    # the same batch again through the CLI: the good capture is done (nothing runs), the bad one fails again
+    rc = main(["batch", str(captures), str(out), *TINY])
+    captured = capsys.readouterr()
+    assert rc == 2 and "good: up to date" in captured.out
+    assert len(captured.err.strip().splitlines()[-1:]) == 1 and "1 of 2 captures failed" in captured.err
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "good" / ".stages").glob("*.json")} == stamps
+    again = {r["capture"]: r for r in json.loads((out / "summary.json").read_text())["rows"]}
+    assert again["good"]["status"] == "up to date" and again["good"]["ran"] == []
+
+
+def test_task_resources_and_retries():
+    """Every stage asks for its cores and is retried when its worker dies; training asks for a GPU only where the
+    cluster has one and the config allows it."""
+    from pipeline.batch import _task_options
+
+    train = next(s for s in STAGES if s.name == "train")
+    masks = next(s for s in STAGES if s.name == "masks")
+    batch = BatchConfig(cpus_per_stage=2, train_gpus=1.0, retries=3)
+    assert _task_options(masks, batch, has_gpu=True) == {"num_cpus": 2, "max_retries": 3}
+    assert _task_options(train, batch, has_gpu=True) == {"num_cpus": 2, "max_retries": 3, "num_gpus": 1.0}
+    assert "num_gpus" not in _task_options(train, batch, has_gpu=False)
+    assert "num_gpus" not in _task_options(train, BatchConfig(train_gpus=0), has_gpu=True)
