@@ -19,7 +19,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from dvr.cameras import decompose_projection, project_points, save_cameras, sphere_frame
+from dvr.cameras import decompose_projection, project_points, save_cameras, sphere_frame, transform_points
 
 from .board import board_support, spec_from_config, use_board
 from .board_poses import (
@@ -389,8 +389,10 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
     if scale_mat is None:
         S = normalization(pts, Ps, sizes, centers, Rs[:, 2, :], cfg.radius_margin, focals=Ks[:, 0, 0],
                           support=support)
-    else:  # the given sphere, moved with the cameras when a board put them in metres
-        S = scale_mat if fit is None else fit.matrix @ scale_mat
+    else:  # the given sphere, moved with the cameras when a board put them in metres: still a sphere (its centre
+        # mapped, its radius scaled), not rotated with the frame, as every stage's (x − c) / r expects
+        S = scale_mat if fit is None else sphere_frame(transform_points(fit.matrix, scale_mat[:3, 3]),
+                                                       fit.scale * scale_mat[0, 0])
     save_cameras(ws.cameras, Ks, Rs, ts, S, None if support is None else support.vector)
     write_points(ws.root / "points.ply", pts, cols)
     return {"views": kept, "radius": float(S[0, 0]), "center": S[:3, 3].tolist(), "support": support_info(support, S),

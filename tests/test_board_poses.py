@@ -111,3 +111,16 @@ def test_report_says_the_poses_came_from_the_board(tmp_path):
     text = capture_section(Workspace(tmp_path), stamp)
     assert "the printed board posed 36/36" in text and SFM_FAILS in text
     assert "no support plane" in text  # no cameras.npz in this workspace: nothing claims a plane
+
+
+def test_given_cameras_on_a_board_keep_their_sphere_without_rotation(board_scene, tmp_path):
+    """Given cameras (with their scale_mat) photographed on a printed board: the cameras move into the board's frame
+    (metres), and the object's sphere with them as a sphere — scale_mat stays a scale and a shift, the form the
+    masks and depth stages (x − c) / r rely on, with the given radius times the board's scale."""
+    out, _, cams, _ = board_scene
+    ws = tmp_path / "ws"
+    run_stage("cameras", ws, images=out / "images", given_cameras=out / "cameras.npz")
+    info = json.loads((ws / "board.json").read_text())
+    S = load_cameras(ws / "cameras.npz").scale_mat
+    assert np.allclose(S[:3, :3], S[0, 0] * np.eye(3), atol=1e-12), S
+    assert S[0, 0] == pytest.approx(cams.scale_mat[0, 0] * info["metres_per_sfm_unit"], rel=1e-9)

@@ -27,7 +27,7 @@ from pipeline.texture import (
     texel_geometry,
     texture_mesh,
 )
-from tests.conftest import SHARED
+from tests.conftest import ROOT, SHARED
 
 W = 256
 
@@ -591,3 +591,30 @@ def test_a_head_on_texel_whose_cosine_rounds_above_one_is_sampled():
         idx, col, weight, _ = sampler.samples(0)
     assert list(idx) == [0] and np.isfinite(weight).all() and weight[0] > 0
     assert np.allclose(col, 0.5)
+
+
+SHARPNESS_REPEATS = """
+import sys
+import numpy as np
+from pipeline.blend import sharpness_map
+rng = np.random.default_rng(0)
+img = rng.random((301, 403, 3)).astype(np.float32)
+ref, held, differ = sharpness_map(img), [], 0
+for _ in range(40):
+    held.append(np.empty(int(rng.integers(1, 5000)), np.uint8))  # moves where numpy puts the next arrays
+    out = sharpness_map(img)  # (the last result stays alive during the next call: another allocation pattern)
+    differ += not np.array_equal(out, ref)
+print(differ)
+"""
+
+
+def test_sharpness_map_is_the_same_on_every_call():
+    """OpenCV's vectorised Sobel and blur round the last bit by where a buffer starts in memory: the same photo
+    must give the same sharpness map wherever numpy happens to put the intermediate arrays (before the aligned
+    buffers, 28 of these 40 calls differed; in a fresh interpreter, whose allocator state this depends on)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", SHARPNESS_REPEATS], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "0"
