@@ -89,3 +89,50 @@ def test_task_resources_and_retries():
     assert _task_options(train, batch, has_gpu=True) == {"num_cpus": 2, "max_retries": 3, "num_gpus": 1.0}
     assert "num_gpus" not in _task_options(train, batch, has_gpu=False)
     assert "num_gpus" not in _task_options(train, BatchConfig(train_gpus=0), has_gpu=True)
+
+
+def _stage_worker_pids() -> list[int]:
+    """PIDs of the Ray workers running a stage task (their process title names the task)."""
+    from pathlib import Path
+
+    pids = []
+    for proc in Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit() and b"ray::run_stage_task" in (proc / "cmdline").read_bytes():
+                pids.append(int(proc.name))
+        except OSError:
+            pass
+    return pids
+
+
+def test_a_killed_worker_s_stage_is_retried(small_ws, tmp_path):
+    """SIGKILL the worker while it trains (no train stamp yet): Ray runs the stage again and the capture ends done."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from pipeline.config import config_from_args
+
+    captures, out = _captures(small_ws, tmp_path), tmp_path / "out"
+    shutil.rmtree(captures / "too_few")
+    slow = [*TINY[:1], "400", *TINY[2:]]  # 400 steps: time to catch the train stage running
+    result, killed = {}, []
+    runner = threading.Thread(target=lambda: result.update(
+        run_batch(captures, out, config_from_args(None, slow), BatchConfig(retries=2))))
+    runner.start()
+    train_log, stamp = out / "good" / "logs" / "train.log", out / "good" / ".stages" / "train.json"
+    t0 = time.time()
+    while not killed and runner.is_alive() and time.time() - t0 < 300:
+        if train_log.exists() and not stamp.exists():
+            time.sleep(0.5)  # inside the stage
+            pids = _stage_worker_pids()
+            if pids and not stamp.exists():
+                for pid in pids:
+                    os.kill(pid, signal.SIGKILL)
+                killed.extend(pids)
+        time.sleep(0.05)
+    runner.join(600)
+    assert killed, "the train stage was never caught running"
+    row = result["rows"][0]
+    assert row["status"] == "done" and (out / "good" / "mesh" / "textured.glb").exists()
