@@ -399,7 +399,7 @@ class Trainer:
         u = torch.rand(o.shape[0], device=o.device)
         random_depth = surface.near + u * (surface.far - surface.near)
         depth = torch.where(batch.hit, surface.depth, torch.where(inside, surface.near, random_depth))
-        free_rays = ((~batch.in_mask) & ~inside) | inside
+        free_rays = ~batch.in_mask | inside
         points = (o + depth[:, None] * d)[free_rays]
         return points[~self.contact_doubt(points)]
 

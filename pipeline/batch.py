@@ -24,7 +24,7 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
-from .stages import STAGES, is_up_to_date, run_stage
+from .stages import STAGES, is_up_to_date, run_stage, stage_named
 from .workspace import StageError
 
 
@@ -95,7 +95,7 @@ def run_stage_task(capture: Capture, stage_name: str, config, threads: int, upst
     import torch
 
     torch.set_num_threads(max(1, threads))
-    stage = next(s for s in STAGES if s.name == stage_name)
+    stage = stage_named(stage_name)
     logs = capture.workspace / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -41,13 +41,13 @@ def capture_row(out: Path, cap, records: list[dict]) -> dict:
     ws = Workspace(cap.workspace)
     status, stage, error = _status(records)
     registered = len(list_images(ws.images)) if ws.images.exists() else 0
-    report = ws.stamp("report") or {}
+    report, seconds = ws.stamp("report") or {}, ws.seconds()
     glb, page = ws.mesh / "textured.glb", ws.root / "report.html"
     return {
         "capture": cap.name, "status": status, "failed_stage": stage, "error": error,
         "photos": str(cap.photos), "workspace": str(ws.root),
         "registered": registered, "total": _photo_count(cap.photos),
-        "seconds": {s.name: ws.seconds()[s.name] for s in STAGES if s.name in ws.seconds()},
+        "seconds": {s.name: seconds[s.name] for s in STAGES if s.name in seconds},
         "ran": [r["stage"] for r in records if r.get("ran")],
         "mask_confidence": (ws.stamp("masks") or {}).get("mean_confidence"),
         "psnr": report.get("psnr"), "psnr_views": report.get("psnr_views"),

@@ -63,6 +63,8 @@ class Stage:
     ``python -m pipeline synth`` already has its images, masks and cameras."""
     always: bool = False
     """Run even when up to date (the report: cheap, and it shows the latest state)."""
+    check: Callable[[Workspace, Sources], None] | None = None
+    """Checks of the user's sources before anything else (StageError on bad input)."""
 
     @property
     def section(self) -> str | None:
@@ -73,6 +75,14 @@ class Stage:
 def _sfm_model(ws: Workspace) -> Path:
     """The undistorted SfM model the depth stage reads (none with given cameras that were not triangulated)."""
     return ws.root / "sfm" / "undistorted" / "sparse"
+
+
+def _photos_outside_workspace(ws: Workspace, src: Sources) -> None:
+    """The cameras stage needs photos, and a workspace that is neither the photo folder nor inside it."""
+    if src.images is None:
+        raise StageError(f"{ws.root}: the cameras stage needs --images DIR (the photos)")
+    if ws.root == src.images or src.images in ws.root.parents:
+        raise StageError(f"{ws.root}: the workspace must not be the photo folder or inside it; choose another OUT")
 
 
 def _mask_files(ws: Workspace) -> list[Path]:
@@ -87,7 +97,7 @@ STAGES: tuple[Stage, ...] = (
           requires=lambda ws: [],
           inputs=lambda ws, src: [p for p in (src.images, src.given_cameras) if p is not None],
           outputs=lambda ws: [ws.cameras, ws.images, ws.root / "points.ply"],
-          sources=("images", "given_cameras"), from_photos=True),
+          sources=("images", "given_cameras"), from_photos=True, check=_photos_outside_workspace),
     Stage("masks", "Object masks (reads images/, cameras.npz, sfm/; writes masks/*.png, masks/overlays/, "
           "masks/confidence.json).", masks.run, masks.MasksConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.cameras, "cameras")],
@@ -139,18 +149,27 @@ def _sources(stage: Stage, images=None, masks_dir=None, given_cameras=None) -> S
     return Sources(**{k: Path(v).resolve() if v is not None else None for k, v in given.items()})
 
 
-def _check_sources(stage: Stage, ws: Workspace, src: Sources) -> None:
-    if stage.name != "cameras":
-        return
-    if src.images is None:
-        raise StageError(f"{ws.root}: the cameras stage needs --images DIR (the photos)")
-    if ws.root == src.images or src.images in ws.root.parents:
-        raise StageError(f"{ws.root}: the workspace must not be the photo folder or inside it; choose another OUT")
+@dataclass
+class _Plan:
+    """What a stage call resolves before deciding anything: the row, workspace, config section, sources, hash."""
+
+    stage: Stage
+    ws: Workspace
+    cfg: object
+    src: Sources
+    config_hash: str
 
 
-def _stage_hash(stage: Stage, cfg, src: Sources) -> str:
-    return config_hash({"cfg": dataclasses.asdict(cfg) if cfg is not None else None,
-                        **{k: str(getattr(src, k)) for k in stage.sources}})
+def _plan(name: str, workspace, config, images, masks_dir, given_cameras) -> _Plan:
+    from .config import Config
+
+    stage = stage_named(name)
+    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
+    src = _sources(stage, images, masks_dir, given_cameras)
+    cfg = getattr(config or Config(), stage.section) if stage.section else None
+    h = config_hash({"cfg": dataclasses.asdict(cfg) if cfg is not None else None,
+                     **{k: str(getattr(src, k)) for k in stage.sources}})
+    return _Plan(stage, ws, cfg, src, h)
 
 
 def is_up_to_date(name: str, workspace: str | Path | Workspace, config: Config | None = None, *,
@@ -158,17 +177,12 @@ def is_up_to_date(name: str, workspace: str | Path | Workspace, config: Config |
                   given_cameras: str | Path | None = None) -> bool:
     """Whether :func:`run_stage` with these arguments would skip stage ``name`` (an ``always`` stage: whether it
     has run once)."""
-    from .config import Config
-
-    stage = stage_named(name)
-    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
-    src = _sources(stage, images, masks_dir, given_cameras)
-    if stage.always:
-        return ws.stamp(name) is not None
-    cfg = getattr(config or Config(), stage.section) if stage.section else None
-    if not all(p.exists() for p, _ in stage.requires(ws)):
+    p = _plan(name, workspace, config, images, masks_dir, given_cameras)
+    if p.stage.always:
+        return p.ws.stamp(name) is not None
+    if not all(path.exists() for path, _ in p.stage.requires(p.ws)):
         return False
-    return ws.up_to_date(name, _stage_hash(stage, cfg, src), stage.inputs(ws, src), stage.outputs(ws))
+    return p.ws.up_to_date(name, p.config_hash, p.stage.inputs(p.ws, p.src), p.stage.outputs(p.ws))
 
 
 def run_stage(name: str, workspace: str | Path | Workspace, config: Config | None = None, force: bool = False, *,
@@ -178,28 +192,23 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
     returns whether it ran. ``images``, ``masks_dir`` and ``given_cameras`` are the user's paths for the stages that
     read them; ``stop_after`` stops training early (tests of resuming). Raises StageError (one line: the file and
     the fix) on bad input."""
-    from .config import Config
-
-    stage = stage_named(name)
-    ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
-    config = config or Config()
-    src = _sources(stage, images, masks_dir, given_cameras)
-    _check_sources(stage, ws, src)
+    p = _plan(name, workspace, config, images, masks_dir, given_cameras)
+    stage, ws = p.stage, p.ws
+    if stage.check is not None:
+        stage.check(ws, p.src)
     for path, producer in stage.requires(ws):
         ws.require(path, hint=f"run the {producer} stage first")
-    cfg = getattr(config, stage.section) if stage.section else None
-    h = _stage_hash(stage, cfg, src)
-    outputs = stage.outputs(ws)
-    if not force and not stage.always and ws.up_to_date(name, h, stage.inputs(ws, src), outputs):
+    inputs, outputs = stage.inputs(ws, p.src), stage.outputs(ws)
+    if not force and not stage.always and ws.up_to_date(name, p.config_hash, inputs, outputs):
         print(f"{name}: up to date ({outputs[0] if outputs else ws.root})")
         return False
     ws.clear(name)
     t0 = time.perf_counter()
-    done = stage.body(Job(ws, cfg, src, force, h, stop_after))
+    done = stage.body(Job(ws, p.cfg, p.src, force, p.config_hash, inputs, stop_after))
     if done is None:  # stopped early on request; the next run resumes
         return True
     seconds = done.seconds if done.seconds is not None else time.perf_counter() - t0
-    ws.mark_done(name, h, seconds, done.details)
+    ws.mark_done(name, p.config_hash, seconds, done.details)
     return True
 
 

@@ -18,7 +18,7 @@ def _fresh_or_resume(job: Job) -> None:
     """Keep model/ (its checkpoint resumes) only when it was trained with this config on these inputs."""
     ws = job.ws
     cfg_file = ws.model / "config.json"
-    inputs_time = max(newest_mtime(p) for p in (ws.images, ws.masks, ws.cameras, ws.depth))
+    inputs_time = max(newest_mtime(p) for p in job.inputs)
     old = json.loads(cfg_file.read_text()) if cfg_file.exists() else {}
     if job.force or old.get("hash") != job.config_hash or old.get("inputs_time") != inputs_time:
         # another config, or new masks / images / cameras: that checkpoint is not ours to resume

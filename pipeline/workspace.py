@@ -150,6 +150,8 @@ class Job:
     """Redo the stage even when up to date (the train stage also discards its checkpoint)."""
     config_hash: str = "-"
     """Hash of the config section and the sources the stage reads (its stamp records it)."""
+    inputs: list[Path] = field(default_factory=list)
+    """The paths whose modification makes the stage stale (its row's ``inputs``)."""
     stop_after: int | None = None
     """Train stage: stop after this many steps without finishing (tests of resuming); None: run to the end."""
 
