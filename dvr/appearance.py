@@ -10,11 +10,16 @@ towards it. No offset: exposure and white balance are gains, and a gain and an o
 other on the few colours one object shows (with both, the fitted gains came out 8 % off the true ones on a
 mid-grey scene; gain only: 1.4 %, `tests/test_appearance.py`). A gain in linear light is also a gain after the
 camera's gamma curve ((g·x)^γ = g^γ·x^γ), so the model fits sRGB photos as well as the renderer's linear ones.
-The field keeps the colour of the average view: what the texture bake and the held-out views see.
+The field should keep the colour of the average view (what the held-out views see), but the regulariser fixes
+the common scale only softly: where the field cannot reach the brightest colours, every view's gain drifts the same
+way (1.07 / 1.05 / 1.01 on a cow photographed with no exposure change at all). So whoever uses the gains takes
+them relative to their per-channel geometric mean over the views (:func:`relative_gains`): the texture bake divides
+each photo by its relative gain and scales the field's colours by the common gain.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn as nn
 
@@ -48,3 +53,15 @@ class ViewAppearance(nn.Module):
     def undo(self, colour: torch.Tensor, view: int) -> torch.Tensor:
         """A photo's colours (..., 3) of view ``view`` mapped back to the shared field's (for the texture bake)."""
         return colour / torch.exp(self.log_gain[view].detach())
+
+
+def relative_gains(gains: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-view gains (N, 3) split into gains relative to the average view (N, 3) and the common gain (3,): their
+    per-channel geometric mean over the views, the part of the gains that the field and the gains could trade."""
+    gains = np.asarray(gains, np.float64)
+    if gains.ndim != 2 or gains.shape[1] != 3 or len(gains) == 0:
+        raise ValueError(f"relative_gains: gains must be (N, 3) with N ≥ 1, got {gains.shape}")
+    if not (np.isfinite(gains).all() and (gains > 0).all()):
+        raise ValueError("relative_gains: gains must be finite and positive")
+    common = np.exp(np.log(gains).mean(0))
+    return gains / common, common

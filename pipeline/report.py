@@ -154,13 +154,18 @@ def appearance_section(ws: Workspace) -> str:
     if not path.exists():
         return ""
     looks = json.loads(path.read_text())
-    gains = np.array([t["gain"] for t in looks.values()]) if looks else np.ones((1, 3))
-    rows = "".join(f"<tr><td>{html.escape(n)}</td>" + "".join(f"<td>{g:.3f}</td>" for g in t["gain"])
-                   + "</tr>" for n, t in looks.items())
-    return (f"<h2>Per-view appearance</h2><p>Exposure and white balance fitted per photo (a gain per "
-            f"channel; the texture is baked from the photos with these undone). Gains range "
-            f"{gains.min():.2f}–{gains.max():.2f}.</p><table><tr><th>photo</th><th>gain R</th><th>gain G</th>"
-            f"<th>gain B</th></tr>{rows}</table>")
+    if not looks:
+        return ""
+    from dvr.appearance import relative_gains
+
+    rel, common = relative_gains(np.maximum([t["gain"] for t in looks.values()], 1e-3))
+    rows = "".join(f"<tr><td>{html.escape(n)}</td>" + "".join(f"<td>{g:.3f}</td>" for g in r) + "</tr>"
+                   for n, r in zip(looks, rel))
+    return (f"<h2>Per-view appearance</h2><p>Exposure and white balance fitted per photo: a gain per channel, "
+            f"relative to the average view (the texture is baked from the photos with these undone). Relative "
+            f"gains range {rel.min():.2f}–{rel.max():.2f}; the part common to all views, "
+            f"{' / '.join(f'{c:.3f}' for c in common)} (R / G / B), stays in the texture.</p><table><tr><th>photo"
+            f"</th><th>gain R</th><th>gain G</th><th>gain B</th></tr>{rows}</table>")
 
 
 def build(ws: Workspace, stats: dict | None = None) -> str:

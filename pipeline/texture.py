@@ -27,6 +27,7 @@ import numpy as np
 import torch
 import trimesh
 
+from dvr.appearance import relative_gains
 from dvr.cameras import Cameras, load_cameras, project_points, to_normalized, to_sfm, transform_points
 from dvr.data import list_images, read_rgb
 from dvr.device import resolve_device
@@ -239,10 +240,11 @@ def dilate_gutter(tex: np.ndarray, valid: np.ndarray, n: int) -> tuple[np.ndarra
 
 
 def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field: Field | None = None,
-                field_frame: np.ndarray | None = None) -> np.ndarray:
+                field_frame: np.ndarray | None = None, field_gain: np.ndarray | None = None) -> np.ndarray:
     """Colours of the texels no photo sees: the trained texture field's when there is one (``field_frame``:
-    4×4 map of the field's frame to the frame of ``pts``), else the colour of the nearest seen texel in 3-D
-    (never black)."""
+    4×4 map of the field's frame to the frame of ``pts``; ``field_gain`` (3,): the per-view gains' common part,
+    which the photos keep and the field lacks, :func:`undo_appearance`), else the colour of the nearest seen texel
+    in 3-D (never black)."""
     if field is not None:
         dev = next(field.parameters()).device
         q = pts[unseen]
@@ -250,7 +252,8 @@ def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field: Fie
             q = transform_points(np.linalg.inv(field_frame), q)
         with torch.no_grad():
             q = torch.from_numpy(q).float().to(dev)
-            return evaluate_in_chunks(field.texture, q, 65536, trailing_shape=(3,)).cpu().numpy()
+            rgb = evaluate_in_chunks(field.texture, q, 65536, trailing_shape=(3,)).cpu().numpy()
+        return rgb if field_gain is None else np.clip(rgb * np.asarray(field_gain, np.float32), 0.0, 1.0)
     if unseen.all():
         return np.full((int(unseen.sum()), 3), 0.5)
     from scipy.spatial import cKDTree
@@ -295,9 +298,10 @@ def atlas_size(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]
 
 
 def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams: Cameras, cfg: TextureConfig,
-                 field: Field | None = None, field_frame: np.ndarray | None = None):
+                 field: Field | None = None, field_frame: np.ndarray | None = None,
+                 field_gain: np.ndarray | None = None):
     """Normalized-frame mesh → (new verts, new faces, uvs, texture (side, side, 3) float, stats); the side follows
-    the photos' resolution on the object (:func:`atlas_size`)."""
+    the photos' resolution on the object (:func:`atlas_size`). ``field_gain``: see :func:`fill_unseen`."""
     base = trimesh.Trimesh(verts_n, faces, process=False)
     sizes = [(im.shape[1], im.shape[0]) for im in images]
     side = atlas_size(base, cams, sizes, cfg)
@@ -316,7 +320,7 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
     unseen = wsum <= 0
     fallback = unseen | band_only  # a colour only the silhouette band gives may be background: not trusted
     if fallback.any():
-        col[fallback] = fill_unseen(pts, col, fallback, field, field_frame)
+        col[fallback] = fill_unseen(pts, col, fallback, field, field_frame, field_gain)
     tex = np.zeros((side, side, 3), np.float32)
     tex[r, c] = col
     valid = fid >= 0
@@ -381,17 +385,18 @@ def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np
         png.join()
 
 
-def undo_appearance(images: list[np.ndarray], names: list[str], looks: dict) -> list[np.ndarray]:
-    """Each photo mapped back to the shared colour of the texture field: ``photo / gain`` with the view's
-    fitted transform (``model/appearance.json``), so views of different exposure agree before they are blended."""
-    out = []
-    for img, name in zip(images, names):
-        t = looks.get(name)
-        if t is None:
-            out.append(img)
-            continue
-        out.append(np.clip(img / np.maximum(np.asarray(t["gain"], np.float32), 1e-3), 0.0, 1.0))
-    return out
+def undo_appearance(images: list[np.ndarray], names: list[str], looks: dict) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each photo mapped back to the colour of the average view: ``photo / relative gain`` with the view's fitted
+    transform (``model/appearance.json``) taken relative to all views' (:func:`dvr.appearance.relative_gains`), so
+    views of different exposure agree before they are blended and a drift common to all gains does not tint the
+    texture. Returns the photos and the common gain (3,), by which the field's colours are to be scaled."""
+    fitted = {n: np.maximum(np.asarray(t["gain"], np.float64), 1e-3) for n, t in looks.items()}
+    if not fitted:
+        return list(images), np.ones(3)
+    rel, common = relative_gains(np.stack(list(fitted.values())))
+    rel_of = dict(zip(fitted, rel.astype(np.float32)))
+    out = [img if name not in rel_of else np.clip(img / rel_of[name], 0.0, 1.0) for img, name in zip(images, names)]
+    return out, common
 
 
 def run(job: Job) -> Done:
@@ -414,11 +419,12 @@ def run(job: Job) -> Done:
     verts_n = np.asarray(m.vertices, np.float64)
     if mesh_frame == "sfm":
         verts_n = to_normalized(verts_n, S)
-    images = [read_rgb(p) for p in paths]
+    images, field_gain = [read_rgb(p) for p in paths], np.ones(3)
     if looks.exists():
-        images = undo_appearance(images, [p.stem for p in paths], json.loads(looks.read_text()))
+        images, field_gain = undo_appearance(images, [p.stem for p in paths], json.loads(looks.read_text()))
     field, _, field_frame = load_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
-    nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame)
+    nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame,
+                                           field_gain)
     out_v = to_sfm(nv, S) if cfg.frame == "sfm" else nv
     export_textured(ws.mesh, out_v, nf, uvs, tex)
     stats.pop("filled")

@@ -62,12 +62,47 @@ def test_gradcheck():
 
 def test_undo_appearance_maps_photos_back_and_survives_a_zero_gain():
     shared = np.random.default_rng(0).random((8, 8, 3)).astype(np.float32) * 0.6
-    looks = {"a": {"gain": [1.2, 0.9, 1.1]}, "z": {"gain": [0.0, 1, 1]}}
+    looks = {"a": {"gain": [1.2, 0.9, 1.1]}, "b": {"gain": [1 / 1.2, 1 / 0.9, 1 / 1.1]}}
     photo = shared * np.float32([1.2, 0.9, 1.1])
-    back, zero, other = undo_appearance([photo, shared, shared], ["a", "z", "not fitted"], looks)
-    assert np.allclose(back, shared, atol=1e-6)
-    assert np.isfinite(zero).all()  # a zero gain (a hand-edited file) gives no inf or NaN
+    (back, other), common = undo_appearance([photo, shared], ["a", "not fitted"], looks)
+    assert np.allclose(back, shared, atol=1e-6) and np.allclose(common, 1.0)
     assert other is shared
+    (zero,), _ = undo_appearance([shared], ["z"], {"z": {"gain": [0.0, 1, 1]}, "y": {"gain": [1, 1, 1]}})
+    assert np.isfinite(zero).all()  # a zero gain (a hand-edited file) gives no inf or NaN
+
+
+def test_undo_appearance_leaves_a_drift_common_to_all_views_out_of_the_texture():
+    """Training on photos with no exposure change at all, every gain drifted the same way (1.07 / 1.05 / 1.01 on
+    the cow): the bake must not divide the photos by that (a darker, tinted texture: 27.4 → 25.6 dB held-out)."""
+    rng = np.random.default_rng(1)
+    photos = [rng.random((8, 8, 3)).astype(np.float32) * 0.8 for _ in range(3)]
+    drift = [1.066, 1.049, 1.014]
+    looks = {f"v{i}": {"gain": drift} for i in range(3)}
+    back, common = undo_appearance(photos, list(looks), looks)
+    assert all(np.allclose(b, p, atol=1e-6) for b, p in zip(back, photos))
+    assert np.allclose(common, drift)
+
+
+def test_unseen_texels_take_the_field_colour_times_the_common_gain():
+    from dvr.fields import FieldConfig, make_field
+    from pipeline.texture import fill_unseen
+
+    field = make_field(FieldConfig(kind="grid", base_res=8, plane_res=(16,)))
+    pts = np.random.default_rng(0).uniform(-0.5, 0.5, (5, 3))
+    unseen = np.ones(5, bool)
+    plain = fill_unseen(pts, np.zeros((5, 3)), unseen, field)
+    scaled = fill_unseen(pts, np.zeros((5, 3)), unseen, field, field_gain=np.array([1.1, 1.0, 0.5]))
+    assert np.allclose(scaled, np.clip(plain * [1.1, 1.0, 0.5], 0, 1), atol=1e-6)
+
+
+def test_relative_gains_rejects_bad_input():
+    from dvr.appearance import relative_gains
+
+    rel, common = relative_gains(np.array([[2.0, 1, 1], [0.5, 1, 4]]))
+    assert np.allclose(common, [1, 1, 2]) and np.allclose(rel * common, [[2, 1, 1], [0.5, 1, 4]])
+    for bad in (np.ones((2, 2)), np.zeros((0, 3)), np.array([[1.0, 0, 1]]), np.array([[1.0, np.nan, 1]])):
+        with pytest.raises(ValueError, match="relative_gains"):
+            relative_gains(bad)
 
 
 def test_report_lists_the_fitted_gains(tmp_path):
@@ -79,7 +114,9 @@ def test_report_lists_the_fitted_gains(tmp_path):
     looks = {"000000": {"gain": [1.21, 0.9, 1.0]}, "000001": {"gain": [0.8, 1, 1]}}
     (tmp_path / "model" / "appearance.json").write_text(json.dumps(looks))
     html = appearance_section(Workspace(tmp_path))
-    assert "Per-view appearance" in html and "000001" in html and "1.210" in html and "0.80–1.21" in html
+    # relative to the average view: R's common part is sqrt(1.21 · 0.8) = 0.984, 1.21 / 0.984 = 1.230
+    assert "Per-view appearance" in html and "000001" in html and "1.230" in html and "0.81–1.23" in html
+    assert "0.984 / 0.949 / 1.000" in html
 
 
 @pytest.mark.slow
