@@ -217,13 +217,16 @@ def reconstruct(images: str | Path | None, workspace: str | Path, config: Config
                 force: bool = False) -> Path:
     """Every stage in order, each skipped when up to date (a killed run resumes where it stopped); returns the
     textured GLB. Without ``images`` the workspace must already hold images/, masks/ and cameras.npz (as
-    ``python -m pipeline synth`` writes them); ``masks_dir`` gives user masks, ``given_cameras`` skips SfM."""
+    ``python -m pipeline synth`` writes them); ``masks_dir`` gives user masks, ``given_cameras`` skips SfM (and needs
+    ``images``)."""
     ws = Workspace(workspace)
     if images is None and not ws.cameras.exists():
         raise StageError(f"{ws.root}: no photos given and no cameras.npz there; pass the photo folder (--images DIR)")
     given = {"images": images, "masks_dir": masks_dir, "given_cameras": given_cameras}
     for stage in STAGES:
-        if stage.from_photos and images is None and not (stage.name == "masks" and masks_dir is not None):
+        # a stage of the photos runs when they are given or when any of its own sources is (user masks for a
+        # workspace that holds images; given cameras without photos: the cameras stage says what is missing)
+        if stage.from_photos and not any(given[k] is not None for k in stage.sources) and images is None:
             continue
         run_stage(stage.name, ws, config, force, **{k: given[k] for k in stage.sources})
     return ws.mesh / "textured.glb"

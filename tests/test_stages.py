@@ -76,6 +76,16 @@ def test_run_stage_names_the_missing_input_and_its_stage(tmp_path):
         reconstruct(None, tmp_path)
 
 
+def test_reconstruct_does_not_ignore_given_cameras_without_photos(small_ws, tmp_path):
+    """A workspace that holds images and cameras, and --given-cameras without --images: the cameras stage says what
+    is missing instead of skipping the given file (and nothing is trained on the old cameras)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(small_ws, ws)
+    with pytest.raises(StageError, match="the cameras stage needs --images"):
+        reconstruct(None, ws, given_cameras=ws / "cameras.npz")
+    assert not (ws / ".stages" / "train.json").exists()
+
+
 def test_stage_options_are_config_fields():
     cfg = Config()
     for stage in stages.STAGES:
