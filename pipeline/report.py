@@ -153,12 +153,18 @@ def appearance_section(ws: Workspace) -> str:
     path = ws.model / "appearance.json"
     if not path.exists():
         return ""
-    looks = json.loads(path.read_text())
-    if not looks:
-        return ""
     from dvr.appearance import relative_gains
 
-    rel, common = relative_gains(np.maximum([t["gain"] for t in looks.values()], 1e-3))
+    from .texture import read_appearance
+    from .workspace import StageError
+
+    try:
+        looks = read_appearance(path)
+    except StageError as exc:
+        return f"<h2>Per-view appearance</h2><p>{html.escape(str(exc))}</p>"
+    if not looks:
+        return ""
+    rel, common = relative_gains(np.array([t["gain"] for t in looks.values()], np.float64))
     rows = "".join(f"<tr><td>{html.escape(n)}</td>" + "".join(f"<td>{g:.3f}</td>" for g in r) + "</tr>"
                    for n, r in zip(looks, rel))
     return (f"<h2>Per-view appearance</h2><p>Exposure and white balance fitted per photo: a gain per channel, "

@@ -385,6 +385,19 @@ def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np
         png.join()
 
 
+def read_appearance(path: Path) -> dict:
+    """The per-view gains training wrote (``model/appearance.json``: image name → {"gain": [r, g, b]}), checked:
+    a StageError naming the file when it is unreadable or a gain is not finite and positive (a hand-edited file)."""
+    try:
+        looks = json.loads(Path(path).read_text())
+        gains = np.array([t["gain"] for t in looks.values()], np.float64).reshape(-1, 3)
+    except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise StageError(f"{path}: unreadable per-view gains ({type(exc).__name__}); retrain (train --force)") from exc
+    if not (np.isfinite(gains).all() and (gains > 0).all()):
+        raise StageError(f"{path}: per-view gains must be finite and positive; retrain (train --force)")
+    return looks
+
+
 def undo_appearance(images: list[np.ndarray], names: list[str], looks: dict) -> tuple[list[np.ndarray], np.ndarray]:
     """Each photo mapped back to the colour of the average view: ``photo / relative gain`` with the view's fitted
     transform (``model/appearance.json``) taken relative to all views' (:func:`dvr.appearance.relative_gains`), so
@@ -421,7 +434,7 @@ def run(job: Job) -> Done:
         verts_n = to_normalized(verts_n, S)
     images, field_gain = [read_rgb(p) for p in paths], np.ones(3)
     if looks.exists():
-        images, field_gain = undo_appearance(images, [p.stem for p in paths], json.loads(looks.read_text()))
+        images, field_gain = undo_appearance(images, [p.stem for p in paths], read_appearance(looks))
     field, _, field_frame = load_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
     nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame,
                                            field_gain)

@@ -95,6 +95,20 @@ def test_unseen_texels_take_the_field_colour_times_the_common_gain():
     assert np.allclose(scaled, np.clip(plain * [1.1, 1.0, 0.5], 0, 1), atol=1e-6)
 
 
+def test_a_broken_appearance_file_is_one_clear_error(tmp_path):
+    from pipeline.texture import read_appearance
+    from pipeline.workspace import StageError
+
+    good = tmp_path / "appearance.json"
+    good.write_text(json.dumps({"a": {"gain": [1.0, 0.9, 1.1]}}))
+    assert read_appearance(good) == {"a": {"gain": [1.0, 0.9, 1.1]}}
+    for text in ('{"a": {"gain": [1.0, NaN, 1]}}', '{"a": {"gain": [1.0, -1, 1]}}', '{"a": {"gain": [1, 1]}}',
+                 '{"a": {"gains": [1, 1, 1]}}', "[1, 2", '{"a": 3}'):
+        good.write_text(text)
+        with pytest.raises(StageError, match="appearance.json"):
+            read_appearance(good)
+
+
 def test_relative_gains_rejects_bad_input():
     from dvr.appearance import relative_gains
 
@@ -117,6 +131,8 @@ def test_report_lists_the_fitted_gains(tmp_path):
     # relative to the average view: R's common part is sqrt(1.21 · 0.8) = 0.984, 1.21 / 0.984 = 1.230
     assert "Per-view appearance" in html and "000001" in html and "1.230" in html and "0.81–1.23" in html
     assert "0.984 / 0.949 / 1.000" in html
+    (tmp_path / "model" / "appearance.json").write_text('{"000000": {"gain": [1, NaN, 1]}}')
+    assert "must be finite and positive" in appearance_section(Workspace(tmp_path))  # a line, not a traceback
 
 
 @pytest.mark.slow
