@@ -182,19 +182,17 @@ def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
     discrete view selection (without and with ``--texture.view-selection``)."""
     base = {(r["scene"], r["cameras"]): r for r in reconstructions(all_results) if "error" not in r
             and r["preset"] == "default" and not r.get("knob") and r["scene"] in ("cow", "dtu")}
-    by = {(r["scene"], r["cameras"], r.get("knob")): r for r in rows if r["preset"] == "default"}
-    better = {(r["scene"], r["cameras"], r.get("knob")): r for r in rows if r["preset"] == "balanced"}
+    by = {(r["preset"], r["scene"], r["cameras"], r.get("knob")): r for r in rows}
     appearance = "per-view appearance"
     looks = "the cow photographed with exposure ±25 %, white balance ±8 % and specular highlights"
-    pairs = [(appearance, looks, by.get(("cow", "gt", "exposure+specular")),
-              by.get(("cow", "gt", "exposure+specular, appearance"))),
-             (appearance, looks + " (`balanced` preset)", better.get(("cow", "gt", "exposure+specular")),
-              better.get(("cow", "gt", "exposure+specular, appearance"))),
-             (appearance, "the plain cow (one exposure, no highlights)", base.get(("cow", "gt")),
-              by.get(("cow", "gt", "appearance"))),
-             (appearance, "DTU scan24", base.get(("dtu", "sfm")), by.get(("dtu", "sfm", "appearance")))]
+    pairs = [(appearance, looks + ("" if p == "default" else f" (`{p}` preset)"),
+              by.get((p, "cow", "gt", "exposure+specular")), by.get((p, "cow", "gt", "exposure+specular, appearance")))
+             for p in ("default", "balanced")]
+    pairs += [(appearance, "the plain cow (one exposure, no highlights)", base.get(("cow", "gt")),
+               by.get(("default", "cow", "gt", "appearance"))),
+              (appearance, "DTU scan24", base.get(("dtu", "sfm")), by.get(("default", "dtu", "sfm", "appearance")))]
     selection = "view selection in the bake"
-    pairs += [(selection, what, base.get(key), by.get((*key, "view selection")))
+    pairs += [(selection, what, base.get(key), by.get(("default", *key, "view selection")))
               for what, key in (("the cow, GT cameras", ("cow", "gt")), ("the cow from photos", ("cow", "sfm")),
                                 ("DTU scan24", ("dtu", "sfm")))]
     out = []

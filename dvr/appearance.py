@@ -51,7 +51,8 @@ class ViewAppearance(nn.Module):
         return torch.exp(self.log_gain.detach())
 
     def undo(self, colour: torch.Tensor, view: int) -> torch.Tensor:
-        """A photo's colours (..., 3) of view ``view`` mapped back to the shared field's (for the texture bake)."""
+        """A photo's colours (..., 3) of view ``view`` mapped back to the shared field's (the bake divides by the gain
+        relative to the average view instead, :func:`relative_gains`)."""
         return colour / torch.exp(self.log_gain[view].detach())
 
 

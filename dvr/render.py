@@ -6,7 +6,7 @@ import torch
 
 from .data import SceneData
 from .fields import Field
-from .march import HIT, find_surface
+from .march import find_surface
 
 
 @torch.no_grad()
@@ -19,7 +19,7 @@ def render_rays(field: Field, origins: torch.Tensor, dirs: torch.Tensor, n_steps
     for s in range(0, origins.shape[0], chunk):
         o, d = origins[s : s + chunk], dirs[s : s + chunk]
         res = find_surface(field.occupancy, o, d, n_steps=n_steps, n_secant=n_secant)
-        h = res.status == HIT
+        h = res.hit
         hit[s : s + chunk] = h
         depth[s : s + chunk] = res.depth
         if h.any():

@@ -24,7 +24,7 @@ from .device import resolve_device
 from .fields import Field, FieldConfig, finite_difference_normals, make_field
 from .hull import carve_along_rays, hull_bounding_sphere, hull_logits, outside_hull
 from .implicit import implicit_depth
-from .march import HIT, INSIDE, MISS, SurfaceResult, find_surface
+from .march import INSIDE, MISS, SurfaceResult, find_surface
 from .render import render_view
 
 
@@ -376,7 +376,7 @@ class Trainer:
         origins, dirs, observed, mask, view = self.sampler.sample(c.batch_rays)
         surface = find_surface(m.occupancy, origins, dirs, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
                                jitter=c.jitter, generator=None)
-        hit = surface.status == HIT
+        hit = surface.hit
         hit_rays = hit.nonzero().view(-1)
         hit_depth = implicit_depth(m.occupancy, m.occupancy_parameters(), origins[hit_rays], dirs[hit_rays],
                                    surface.depth[hit_rays], c.grad_eps)

@@ -153,9 +153,7 @@ def appearance_section(ws: Workspace) -> str:
     path = ws.model / "appearance.json"
     if not path.exists():
         return ""
-    from dvr.appearance import relative_gains
-
-    from .texture import read_appearance
+    from .texture import read_appearance, relative_looks
     from .workspace import StageError
 
     try:
@@ -164,9 +162,10 @@ def appearance_section(ws: Workspace) -> str:
         return f"<h2>Per-view appearance</h2><p>{html.escape(str(exc))}</p>"
     if not looks:
         return ""
-    rel, common = relative_gains(np.array([t["gain"] for t in looks.values()], np.float64))
+    rel_of, common = relative_looks(looks)
+    rel = np.stack(list(rel_of.values()))
     rows = "".join(f"<tr><td>{html.escape(n)}</td>" + "".join(f"<td>{g:.3f}</td>" for g in r) + "</tr>"
-                   for n, r in zip(looks, rel))
+                   for n, r in rel_of.items())
     return (f"<h2>Per-view appearance</h2><p>Exposure and white balance fitted per photo: a gain per channel, "
             f"relative to the average view (the texture is baked from the photos with these undone). Relative "
             f"gains range {rel.min():.2f}–{rel.max():.2f}; the part common to all views, "

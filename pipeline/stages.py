@@ -59,7 +59,7 @@ class Stage:
     sources: tuple[str, ...] = ()
     """Fields of :class:`~pipeline.workspace.Sources` it reads (CLI options; part of its config hash)."""
     from_photos: bool = False
-    """:func:`reconstruct` runs it only when given photos (or, for masks, a masks folder): a workspace made by
+    """:func:`reconstruct` runs it only when given photos or one of its own ``sources``: a workspace made by
     ``python -m pipeline synth`` already has its images, masks and cameras."""
     always: bool = False
     """Run even when up to date (the report: cheap, and it shows the latest state)."""

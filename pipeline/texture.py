@@ -398,17 +398,25 @@ def read_appearance(path: Path) -> dict:
     return looks
 
 
+def relative_looks(looks: dict) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Per image name of ``looks`` (``model/appearance.json``) its gain relative to the average view (3,), and the
+    common gain (3,) (:func:`dvr.appearance.relative_gains`; ones without any gain). Gains are clamped at 1e-3: a
+    hand-edited zero gives no inf or NaN."""
+    fitted = {n: np.maximum(np.asarray(t["gain"], np.float64), 1e-3) for n, t in looks.items()}
+    if not fitted:
+        return {}, np.ones(3)
+    rel, common = relative_gains(np.stack(list(fitted.values())))
+    return dict(zip(fitted, rel)), common
+
+
 def undo_appearance(images: list[np.ndarray], names: list[str], looks: dict) -> tuple[list[np.ndarray], np.ndarray]:
     """Each photo mapped back to the colour of the average view: ``photo / relative gain`` with the view's fitted
     transform (``model/appearance.json``) taken relative to all views' (:func:`dvr.appearance.relative_gains`), so
     views of different exposure agree before they are blended and a drift common to all gains does not tint the
     texture. Returns the photos and the common gain (3,), by which the field's colours are to be scaled."""
-    fitted = {n: np.maximum(np.asarray(t["gain"], np.float64), 1e-3) for n, t in looks.items()}
-    if not fitted:
-        return list(images), np.ones(3)
-    rel, common = relative_gains(np.stack(list(fitted.values())))
-    rel_of = dict(zip(fitted, rel.astype(np.float32)))
-    out = [img if name not in rel_of else np.clip(img / rel_of[name], 0.0, 1.0) for img, name in zip(images, names)]
+    rel_of, common = relative_looks(looks)
+    out = [img if name not in rel_of else np.clip(img / rel_of[name].astype(np.float32), 0.0, 1.0)
+           for img, name in zip(images, names)]
     return out, common
 
 
