@@ -34,6 +34,7 @@ SCENES = {
 }
 HELDOUT = "heldout_"
 """Prefix of the held-out photos in a photos-only run's folder (sorted after the training photos)."""
+CLIPPED = 0.98  # a photo channel at or above this is over-exposed (the pipeline's clipped_level)
 
 
 def scene(name: str, over: dict) -> Path:
@@ -118,16 +119,19 @@ def mask_iou(ws: Path, gt_masks: dict[str, Path]) -> float:
 def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray, gain_fit: bool = False) -> float:
     """PSNR of the textured mesh at a camera against a photo, over ``mask`` ∪ the mesh's pixels. ``gain_fit``: after
     scaling each colour channel of the render by the least-squares gain to the photo (a held-out photo's own
-    exposure and white balance cannot be predicted; what remains is the texture's error)."""
+    exposure and white balance cannot be predicted; what remains is the texture's error), fitted where the photo is
+    not over-exposed and clipped to [0, 1] as the camera clips (else a brighter held-out view's clipped pixels count
+    against the right texture)."""
     from dvr.metrics import masked_psnr
     from pipeline.texture import render_textured
 
     h, w = photo.shape[:2]
     img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, R, centre, w, h)
     m = mask | hit
-    if gain_fit and m.any():
-        a, b = img[m], photo[m]
-        img = img * ((a * b).sum(0) / np.maximum((a * a).sum(0), 1e-12))
+    fit = m & (photo < CLIPPED).all(-1)
+    if gain_fit and fit.any():
+        a, b = img[fit], photo[fit]
+        img = np.clip(img * ((a * b).sum(0) / np.maximum((a * a).sum(0), 1e-12)), 0.0, 1.0)
     return masked_psnr(img, photo, m)
 
 
@@ -157,9 +161,12 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
     from pipeline.workspace import Workspace
 
     cli_over, over = knobs.get(spec.get("knob"), ([], {}))
-    syn = scene(spec["scene"], over)
-    gtc, hc = load_cameras(syn / "cameras.npz"), load_cameras(syn / "gt" / "heldout" / "cameras.npz")
-    held = sorted((syn / "gt" / "heldout" / "images").glob("*.png"))
+    over = dict(over)
+    syn = scene(spec["scene"], {k: v for k, v in over.items() if k != "heldout_from"})
+    # "heldout_from": measure against the held-out photos of the scene with these overrides (same cameras)
+    ref = scene(spec["scene"], over["heldout_from"]) if "heldout_from" in over else syn
+    gtc, hc = load_cameras(syn / "cameras.npz"), load_cameras(ref / "gt" / "heldout" / "cameras.npz")
+    held = sorted((ref / "gt" / "heldout" / "images").glob("*.png"))
     extra: dict = {}
     if spec["cameras"] == "gt":
         ws = work / "ws"
@@ -169,10 +176,10 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
         s, R, t = 1.0, np.eye(3), np.zeros(3)
         tm, tex = textured(ws)
         psnr = [render_psnr(tm, tex, hc.K[i], hc.R[i], hc.sfm_centers[i], _read_rgb(p),
-                            _read_mask(syn / "gt" / "heldout" / "masks" / p.name)) for i, p in enumerate(held)]
+                            _read_mask(ref / "gt" / "heldout" / "masks" / p.name)) for i, p in enumerate(held)]
         extra["psnr_gain_fit"] = float(np.mean([
             render_psnr(tm, tex, hc.K[i], hc.R[i], hc.sfm_centers[i], _read_rgb(p),
-                        _read_mask(syn / "gt" / "heldout" / "masks" / p.name), gain_fit=True)
+                        _read_mask(ref / "gt" / "heldout" / "masks" / p.name), gain_fit=True)
             for i, p in enumerate(held)]))
     else:
         full = work / "all"

@@ -51,12 +51,22 @@ KNOBS = {
 }
 # ablation (cow on the floor, GT cameras, default preset): the same scene photographed with per-view exposure and
 # white balance and with specular highlights, trained without and with the per-view appearance (issue 11)
-LOOKS = [{"kind": "exposure", "amount": 0.25, "white_balance": 0.08}, {"kind": "specular", "amount": 0.25,
-                                                                         "shininess": 30.0}]
+EXPOSURE = {"kind": "exposure", "amount": 0.25, "white_balance": 0.08}
+LOOKS = [EXPOSURE, {"kind": "specular", "amount": 0.25, "shininess": 30.0}]
 ABLATIONS = {
     "exposure+specular": ([], {"effects_add": LOOKS}),
     "exposure+specular, appearance": (["--train.appearance"], {"effects_add": LOOKS}),
+    "exposure+specular, appearance + view shading": (["--train.appearance", "--train.view-shading"],
+                                                     {"effects_add": LOOKS}),
+    # the ceiling of a diffuse texture on those held-out photos: the model of the plain cow (no exposure change, no
+    # highlights) measured against them (same cameras)
+    "exposure+specular held-out, effect-free training": ([], {"heldout_from": {"effects_add": LOOKS}}),
+    "exposure": ([], {"effects_add": [EXPOSURE]}),  # what the per-view appearance is for, without highlights
+    "exposure, appearance": (["--train.appearance"], {"effects_add": [EXPOSURE]}),
     "appearance": (["--train.appearance"], {}),  # the plain cow (nothing to fix) and DTU
+    "view shading": (["--train.view-shading"], {}),
+    "appearance + view shading": (["--train.appearance", "--train.view-shading"], {}),
+    "exposure+specular, view shading": (["--train.view-shading"], {"effects_add": LOOKS}),
     "view selection": (["--texture.view-selection"], {}),  # the bake: one view per face, Potts smoothness
 }
 
@@ -112,12 +122,15 @@ def plan(quick: bool) -> list[dict]:
     out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k, "ablation": True} for k in ABLATIONS]
     # the appearance ablation where the geometry is better (silhouette pixels hold most of the default's error)
     out += [{"scene": "cow", "cameras": "gt", "preset": "balanced", "knob": k, "ablation": True}
-            for k in ("exposure+specular", "exposure+specular, appearance")]
+            for k in ("exposure+specular", "exposure+specular, appearance",
+                      "exposure+specular held-out, effect-free training", "exposure", "exposure, appearance",
+                      "exposure+specular, view shading", "exposure+specular, appearance + view shading",
+                      "view shading")]
     out += [{"scene": "dtu", "cameras": "sfm", "preset": p} for p in ("fast", "default", "balanced")]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "balanced"}]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "default", "knob": "view selection", "ablation": True}]
     out += [{"scene": "dtu", "cameras": "sfm", "preset": "default", "knob": k, "ablation": True}
-            for k in ("appearance", "view selection")]
+            for k in ("appearance", "view selection", "appearance + view shading")]
     out += [{"kind": "cameras", "condition": c, "scene": CONDITIONS[c][0]} for c in CONDITIONS]
     return out
 

@@ -14,11 +14,16 @@ def safe_mean(values: torch.Tensor) -> torch.Tensor:
     return values.mean()
 
 
-def rgb_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """L1 between predicted and observed colours of rays that hit where the mask is set, (M, 3) each."""
+def rgb_loss(pred: torch.Tensor, target: torch.Tensor, clipped_level: float = float("inf")) -> torch.Tensor:
+    """L1 between predicted and observed colours of rays that hit where the mask is set, (M, 3) each. An observed
+    channel at or above ``clipped_level`` is over-exposed: it says only that the colour is at least that bright, so
+    a brighter prediction costs nothing there (censored L1; what lets a view photographed brighter, through its
+    per-view gain, agree with one photographed darker)."""
     if pred.shape != target.shape:
         raise ValueError(f"rgb_loss: pred {tuple(pred.shape)} vs target {tuple(target.shape)}")
-    return safe_mean((pred - target).abs().mean(-1))
+    diff = pred - target
+    residual = torch.where(target >= clipped_level, (-diff).clamp_min(0.0), diff.abs())
+    return safe_mean(residual.mean(-1))
 
 
 def freespace_loss(logits: torch.Tensor) -> torch.Tensor:

@@ -26,6 +26,7 @@ from .hull import carve_along_rays, hull_bounding_sphere, hull_logits, outside_h
 from .implicit import implicit_depth
 from .march import INSIDE, MISS, SurfaceResult, find_surface
 from .render import render_view
+from .shading import ViewShading
 
 
 @dataclass
@@ -58,6 +59,9 @@ class LossWeights:
     normal: float = 0.05
     """Term ``normal`` (:meth:`Trainer.normal_loss`): normal smoothness |n(p̂) − n(p̂ + noise)| on hit points (0:
     not computed)."""
+    shading: float = 0.05
+    """Term ``shading`` (:meth:`dvr.shading.ViewShading.regulariser`): L1 pull of the view-dependent residual towards
+    zero (with ``TrainConfig.view_shading``; 0 without)."""
     appearance: float = 0.01
     """Term ``appearance`` (:meth:`dvr.appearance.ViewAppearance.regulariser`): pull of the per-view colour
     transforms towards identity (mean squared log-gain; with ``TrainConfig.appearance``)."""
@@ -83,6 +87,8 @@ class RayBatchRender:
     """(K, 3) rendered colour of the K hits inside the mask (after the view's colour transform, if any)."""
     observed_rgb: torch.Tensor
     """(K, 3) the photos' colours of those pixels."""
+    shading: torch.Tensor | None = None
+    """(K, 3) the view-dependent residual in ``rendered_rgb`` (with ``view_shading``), else None."""
 
 
 @dataclass
@@ -162,6 +168,15 @@ class TrainConfig:
     """Fit a per-view colour transform (exposure and white balance: a gain per channel and view,
     see dvr/appearance.py) between the shared texture field and each photo; the fitted gains are written to
     ``model/appearance.json`` and undone in the texture bake."""
+    clipped_level: float = 0.98
+    """With ``appearance`` or ``view_shading``: a photo channel at or above this level is over-exposed (clipped),
+    and the RGB loss lets the rendered colour be brighter there (:func:`dvr.losses.rgb_loss`), so that a view
+    photographed brighter (a gain above 1 puts the render above 1 where the photo clipped) does not pull the
+    texture field darker and its gain lower. Above 1: off. (Without them the render never exceeds 1.)"""
+    view_shading: bool = False
+    """Explain highlights that move with the camera by a small view-dependent residual colour in training
+    (:mod:`dvr.shading`: an MLP of the reflected ray direction and the point, L1-pulled to zero), so that the
+    diffuse texture field and the geometry do not absorb them; only the diffuse field is kept."""
     hull_gate: bool = True
     """Apply the occupancy loss (mask rays the rendering misses) only where the visual hull agrees the point can
     be occupied: a pixel one view's mask got wrong is outvoted instead of growing a floater."""
@@ -260,12 +275,14 @@ class Trainer:
                                        value=3.0)  # just free: −10 would pull the nearby surface inwards
             self.model.init_occupancy(vol)
         self.appearance = ViewAppearance(data.images.shape[0]).to(self.device) if cfg.appearance else None
+        self.shading = ViewShading().to(self.device) if cfg.view_shading else None
         grid_ids = {id(p) for p in self.model.grid_parameters()}
         groups = [
             {"params": [p for p in self.model.parameters() if id(p) in grid_ids], "lr": cfg.lr_grid},
             {"params": [p for p in self.model.parameters() if id(p) not in grid_ids], "lr": cfg.lr_mlp},
             {"params": list(self.appearance.parameters()) if self.appearance is not None else [],
              "lr": cfg.lr_appearance},
+            {"params": list(self.shading.parameters()) if self.shading is not None else [], "lr": cfg.lr_mlp},
         ]
         groups = [g for g in groups if g["params"]]
         fused = {"fused": True} if self.device.type in ("cpu", "cuda") else {}
@@ -289,6 +306,7 @@ class Trainer:
             "step": self.step, "elapsed": self.elapsed, "skipped": self.skipped,
             "field": self.model.state_dict(), "opt": self.opt.state_dict(), "sched": self.sched.state_dict(),
             "appearance": self.appearance.state_dict() if self.appearance is not None else None,
+            "shading": self.shading.state_dict() if self.shading is not None else None,
             "rng_torch": torch.get_rng_state(), "rng_gen": self.gen.get_state(),
             "rng_np": np.random.get_state(), "rng_py": random.getstate(),
             "rng_cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
@@ -327,6 +345,8 @@ class Trainer:
         self.model.load_state_dict(ck["field"])
         if self.appearance is not None and ck.get("appearance") is not None:
             self.appearance.load_state_dict(ck["appearance"])
+        if self.shading is not None and ck.get("shading") is not None:
+            self.shading.load_state_dict(ck["shading"])
         self.opt.load_state_dict(ck["opt"])
         self.sched.load_state_dict(ck["sched"])
         torch.set_rng_state(ck["rng_torch"])
@@ -384,10 +404,16 @@ class Trainer:
         in_mask = mask > 0.5
         hit_in_mask = in_mask[hit_rays]
         rendered = m.texture(hit_points[hit_in_mask])
+        shading = None
+        if self.shading is not None:  # what the diffuse field cannot show (highlights), from detached geometry
+            pts = hit_points[hit_in_mask].detach()
+            normals = finite_difference_normals(m.occupancy, pts).detach()
+            shading = self.shading(pts, dirs[hit_rays][hit_in_mask], normals)
+            rendered = rendered + shading
         if self.appearance is not None:  # the shared colour as this photo's camera rendered it
             rendered = self.appearance(rendered, view[hit_rays][hit_in_mask])
         return RayBatchRender(origins, dirs, in_mask, surface, hit, hit_points, rendered,
-                              observed[hit_rays][hit_in_mask])
+                              observed[hit_rays][hit_in_mask], shading)
 
     def freespace_points(self, batch: RayBatchRender) -> torch.Tensor:
         """Points pushed free: the hit point of a ray outside the mask, or a random point of such a ray that misses
@@ -486,7 +512,11 @@ class Trainer:
         terms: dict[str, torch.Tensor] = {}
         if self.appearance is not None:
             terms["appearance"] = self.appearance.regulariser()
-        terms["rgb"] = L.rgb_loss(batch.rendered_rgb, batch.observed_rgb)
+        brighter = self.appearance is not None or self.shading is not None  # the render can pass 1
+        clipped = self.cfg.clipped_level if brighter else float("inf")
+        terms["rgb"] = L.rgb_loss(batch.rendered_rgb, batch.observed_rgb, clipped)
+        if batch.shading is not None:
+            terms["shading"] = ViewShading.regulariser(batch.shading)
         terms["freespace"] = L.freespace_loss(logits["freespace"])
         terms["occupancy"] = L.occupancy_loss(logits["occupancy"])
         terms["depth"] = torch.zeros((), device=dev) if sparse is None else \

@@ -89,6 +89,15 @@ def without_silhouette(depth: np.ndarray, px: int) -> np.ndarray:
     return np.where(near, np.inf, depth)
 
 
+def clipped_pixels(img: np.ndarray, level: float) -> np.ndarray:
+    """(h, w) bool: the photo's over-exposed pixels (a channel at or above ``level``), grown by one pixel (the
+    bilinear lookups beside them blend them in)."""
+    if img.ndim != 3:
+        raise ValueError(f"clipped_pixels: img must have shape (h, w, C), got {img.shape}")
+    over = (img >= level).any(-1).astype(np.uint8)
+    return cv2.dilate(over, np.ones((3, 3), np.uint8)) > 0
+
+
 def sharpness_map(img: np.ndarray, exclude: np.ndarray | None = None, sigma_px: float = 2.0) -> np.ndarray:
     """Local sharpness (h, w) float32 of a photo (h, w, C): the Sobel gradient magnitude of its grey image per
     pixel (kernel normalised to 1/8, edges replicated), 0 at ``exclude`` (silhouettes and depth edges, whose contrast
@@ -139,13 +148,15 @@ class ViewSampler:
 
     :meth:`samples` of view ``i`` gives the texels it sees (in front, inside the image, facing it with cos >
     ``min_cos``, depth test of :func:`sample_visible`) with their colours, blending weights (cos^p / distance² ×
-    a feather towards the image border × the support × the sharpness factor) and tiers: 0 clean, 1 touches a depth
-    edge, 2 seen only through the silhouette band (:func:`without_silhouette`). Points, normals and colours are held
-    channel by channel (``pts`` is the transpose of a (3, M) array).
+    a feather towards the image border × the support × the sharpness factor × ``clipped_weight`` on over-exposed
+    pixels) and tiers: 0 clean, 1 touches a depth edge, 2 seen only through the silhouette band
+    (:func:`without_silhouette`). Points, normals and colours are held channel by channel (``pts`` is the transpose
+    of a (3, M) array). ``clipped``: per view, its over-exposed pixels (:func:`clipped_pixels`; default: none).
     """
 
     def __init__(self, pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams: Cameras,
-                 depths: list[np.ndarray], cfg: TextureConfig, maps: tuple | None = None):
+                 depths: list[np.ndarray], cfg: TextureConfig, maps: tuple | None = None,
+                 clipped: list[np.ndarray] | None = None):
         if pts.ndim != 2 or pts.shape[1] != 3 or nrm.shape != pts.shape:
             raise ValueError(f"ViewSampler: pts {pts.shape} and nrm {nrm.shape} must both have shape (M, 3)")
         if not (len(images) == len(depths) == len(cams)):
@@ -159,6 +170,9 @@ class ViewSampler:
         self.K, self.R = cams.K.astype(np.float32), cams.R.astype(np.float32)
         self.t, self.centers = cams.t.astype(np.float32), cams.centers.astype(np.float32)
         self.edges, self.sharp = maps if maps is not None else self._maps()
+        if clipped is not None and [c.shape for c in clipped] != [im.shape[:2] for im in images]:
+            raise ValueError("ViewSampler: one clipped-pixel map per image, of its height and width")
+        self.clipped = None if clipped is None else [c.ravel() for c in clipped]
 
     def _maps(self):
         cfg = self.cfg
@@ -225,8 +239,10 @@ class ViewSampler:
         border = np.minimum(np.minimum(u, w - u), np.minimum(v, h - v))
         feather = np.clip(border / (0.05 * max(w, h)), 0.05, 1.0)
         weight = cos ** cfg.angle_power / dist ** 2 * feather * sup
+        px = np.minimum(v.astype(np.int64), h - 1) * w + np.minimum(u.astype(np.int64), w - 1)
+        if self.clipped is not None:  # an over-exposed pixel only bounds the colour from below
+            weight = np.where(self.clipped[i].take(px), weight * cfg.clipped_weight, weight)
         if self.sharp is not None:  # image contrast per unit length on the surface: lower in a blurred view
-            px = np.minimum(v.astype(np.int64), h - 1) * w + np.minimum(u.astype(np.int64), w - 1)
             contrast = self.sharp[i].ravel().take(px) * f / dist
             weight = weight * (1.0 + contrast / max(cfg.sharpness_floor, 1e-6)) ** cfg.sharpness_power
         return idx, col.T, weight.astype(np.float32), tier
@@ -475,11 +491,13 @@ def _bake_texels(sampler: ViewSampler, cfg: TextureConfig, offsets: np.ndarray |
 
 
 def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams: Cameras, depths: list[np.ndarray],
-         cfg: TextureConfig, surface: TexelSurface | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+         cfg: TextureConfig, surface: TexelSurface | None = None, clipped: list[np.ndarray] | None = None
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Colours (M, 3) in [0, 1], total weights (M,) of texel points seen by the photos, and which texels only the
     silhouette band sees (M,) bool (their colour may be background: the caller gives them the fallback colour).
 
-    Samples and weights per view: :class:`ViewSampler` (depth test, cos^p / distance², border feather, sharpness).
+    Samples and weights per view: :class:`ViewSampler` (depth test, cos^p / distance², border feather, sharpness,
+    over-exposed pixels (``clipped``) at ``clipped_weight``).
     Samples touching a depth discontinuity or silhouette (where real photos blend foreground and background) are
     down-weighted by ``edge_weight`` and, with ``edge_fallback_only``, count only where no clean sample sees the
     texel; pixels in the silhouette band (``silhouette_px``) count only where nothing else does. With
@@ -489,7 +507,7 @@ def bake(pts: np.ndarray, nrm: np.ndarray, images: list[np.ndarray], cams: Camer
     shadow or occluder that one view alone sees does not reach the texture. Texels are baked :data:`BAKE_CHUNK` at a
     time, :data:`BAKE_THREADS` chunks at once (every texel's result depends on its own samples only).
     """
-    sampler = ViewSampler(pts, nrm, images, cams, depths, cfg)
+    sampler = ViewSampler(pts, nrm, images, cams, depths, cfg, clipped=clipped)
     offsets = fit_view_offsets(sampler, surface, cfg) if cfg.seam_levelling and surface is not None else None
     select = cfg.view_selection and surface is not None and surface.texel_faces is not None
     charts = view_charts(sampler, surface, cfg) if select else None

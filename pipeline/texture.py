@@ -34,7 +34,7 @@ from dvr.device import resolve_device
 from dvr.fields import Field, evaluate_in_chunks
 from dvr.trainer import load_model
 
-from .blend import TexelSurface, bake
+from .blend import TexelSurface, bake, clipped_pixels
 from .raycast import mesh_intersector, pixel_center_rays
 from .workspace import Done, Job, StageError
 from .zbuffer import ray_depth_map
@@ -80,6 +80,14 @@ class TextureConfig:
     outlier_reject: float = 3.0
     """Samples farther than this × ``outlier_threshold`` from the robust colour are dropped where 3 or more views
     see the texel."""
+    clipped_level: float = 0.98
+    """With per-view gains fitted in training (``model/appearance.json``): a photo pixel with a channel at or above
+    this level is over-exposed (clipped). It shows only that the surface is at least that bright, and undoing the
+    view's gain turns it into too dark a colour. Above 1: off. (Without the gains the views differ by exposure
+    anyway; keeping clipped pixels out would only prefer the darker views.)"""
+    clipped_weight: float = 0.01
+    """Weight factor of samples on over-exposed pixels (and their neighbours): they colour a texel where no view
+    sees it unclipped."""
     sharpness_power: float = 0.5
     """Prefer sharp views: weights × (1 + c / ``sharpness_floor``)^this, c the photo's local contrast per unit
     length on the surface (blurred Sobel magnitude × focal / distance; lower in a defocused or shaken view); 0: off."""
@@ -299,9 +307,11 @@ def atlas_size(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]
 
 def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams: Cameras, cfg: TextureConfig,
                  field: Field | None = None, field_frame: np.ndarray | None = None,
-                 field_gain: np.ndarray | None = None):
+                 field_gain: np.ndarray | None = None, clipped: list[np.ndarray] | None = None):
     """Normalized-frame mesh → (new verts, new faces, uvs, texture (side, side, 3) float, stats); the side follows
-    the photos' resolution on the object (:func:`atlas_size`). ``field_gain``: see :func:`fill_unseen`."""
+    the photos' resolution on the object (:func:`atlas_size`). ``field_gain``: see :func:`fill_unseen`;
+    ``clipped``: the photos' over-exposed pixels (:func:`pipeline.blend.clipped_pixels` of the photos as taken,
+    before :func:`undo_appearance`), down-weighted by ``clipped_weight``; default: none."""
     base = trimesh.Trimesh(verts_n, faces, process=False)
     sizes = [(im.shape[1], im.shape[0]) for im in images]
     side = atlas_size(base, cams, sizes, cfg)
@@ -316,7 +326,7 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
         deps = deps.result()
     # the seam offsets live on the original vertices; xatlas keeps the faces' order, so ``face`` is a row of faces
     surface = TexelSurface(vmap[nf[face]], bary, np.asarray(faces), len(verts_n), face)
-    col, wsum, band_only = bake(pts, nrm, images, cams, deps, cfg, surface)
+    col, wsum, band_only = bake(pts, nrm, images, cams, deps, cfg, surface, clipped)
     unseen = wsum <= 0
     fallback = unseen | band_only  # a colour only the silhouette band gives may be background: not trusted
     if fallback.any():
@@ -420,6 +430,19 @@ def undo_appearance(images: list[np.ndarray], names: list[str], looks: dict) -> 
     return out, common
 
 
+def photos_for_bake(paths: list[Path], looks: Path, cfg: TextureConfig):
+    """The photos the bake blends, the common gain of the texture field's colours and the photos' over-exposed
+    pixels: with per-view gains (``looks``, ``model/appearance.json``) the photos mapped back to the average view
+    (:func:`undo_appearance`) and their clipped pixels, found in the photos as taken (undoing a gain moves them
+    off 1); without, the photos as they are, a gain of 1 and no clipped pixels (``TextureConfig.clipped_level``)."""
+    images = [read_rgb(p) for p in paths]
+    if not looks.exists():
+        return images, np.ones(3), None
+    clipped = [clipped_pixels(im, cfg.clipped_level) for im in images]
+    images, field_gain = undo_appearance(images, [p.stem for p in paths], read_appearance(looks))
+    return images, field_gain, clipped
+
+
 def run(job: Job) -> Done:
     """Stage ``texture`` (called by :func:`pipeline.stages.run_stage`): the clean mesh UV-unwrapped and baked from
     the photos (the texture field for texels no photo sees) → mesh/textured.obj/.mtl/.png and mesh/textured.glb."""
@@ -440,12 +463,10 @@ def run(job: Job) -> Done:
     verts_n = np.asarray(m.vertices, np.float64)
     if mesh_frame == "sfm":
         verts_n = to_normalized(verts_n, S)
-    images, field_gain = [read_rgb(p) for p in paths], np.ones(3)
-    if looks.exists():
-        images, field_gain = undo_appearance(images, [p.stem for p in paths], read_appearance(looks))
+    images, field_gain, clipped = photos_for_bake(paths, looks, cfg)
     field, _, field_frame = load_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
     nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame,
-                                           field_gain)
+                                           field_gain, clipped)
     out_v = to_sfm(nv, S) if cfg.frame == "sfm" else nv
     export_textured(ws.mesh, out_v, nf, uvs, tex)
     stats.pop("filled")

@@ -12,7 +12,14 @@ import pytest
 import trimesh
 
 from dvr.cameras import load_cameras
-from pipeline.blend import ViewSampler, depth_edges, robust_weights, sample_visible, sharpness_map
+from pipeline.blend import (
+    ViewSampler,
+    clipped_pixels,
+    depth_edges,
+    robust_weights,
+    sample_visible,
+    sharpness_map,
+)
 from pipeline.synth import scene_from_dict, write_scene
 from pipeline.synth.render import MeshShape
 from pipeline.texture import (
@@ -304,6 +311,48 @@ def test_highlight_in_one_view_does_not_reach_texture(plane_views):
     assert near.sum() > 50
     assert err[0.1] < 0.03
     assert err[0.0] > 0.1  # what the robust pass prevents
+
+
+def test_an_over_exposed_view_does_not_darken_the_texture(plane_views):
+    """One of four views photographed 3× brighter (a dark backdrop fooling auto exposure), clipped at 1 as a camera
+    clips, then divided by its gain (as the bake undoes a fitted exposure): its clipped pixels say only "at least
+    this bright", and the bake keeps them out where the other views see the surface unclipped (without that they
+    darken the texture)."""
+    mesh, cams, _, _ = plane_views
+    true = render_mesh(mesh, smooth_colour, cams, 64)
+    gain = 3.0
+    taken = [np.clip(true[0] * gain, 0.0, 1.0), *true[1:]]
+    undone = [taken[0] / gain, *taken[1:]]
+    clipped = [clipped_pixels(im, 0.98) for im in taken]
+    assert clipped[0].mean() > 0.1 and not any(c.any() for c in clipped[1:])
+    err = {}
+    for name, level in (("kept out", 0.98), ("off", 2.0)):
+        cfg = TextureConfig(**SYNTH, clipped_level=level)
+        nv, nf, uvs, tex, _ = texture_mesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), undone, cams, cfg,
+                                           None, clipped=[clipped_pixels(im, level) for im in taken])
+        fid = rasterize_atlas(uvs, nf, tex.shape[0])
+        r, c, pts, _ = texel_geometry(fid, uvs, nf, nv, np.ones_like(nv))
+        colour = smooth_colour(pts)
+        over = (colour * gain >= 1.0).any(1)  # texels the bright view saw clipped
+        err[name] = float(np.abs(tex[r, c] - colour)[over].mean())
+    print("mean error of the texels the bright view saw clipped:", err)
+    assert err["kept out"] < 0.01
+    assert err["off"] > 2 * err["kept out"]  # what keeping clipped pixels out prevents
+
+
+def test_clipped_pixels_values_and_bad_input():
+    img = np.zeros((8, 8, 3), np.float32)
+    img[4, 4, 1] = 1.0
+    out = clipped_pixels(img, 0.98)
+    assert out.shape == (8, 8) and out.dtype == bool
+    assert out[3:6, 3:6].all() and out.sum() == 9  # the pixel and its neighbours (bilinear lookups blend them)
+    assert not clipped_pixels(img, 1.5).any()
+    with pytest.raises(ValueError, match="clipped_pixels"):
+        clipped_pixels(np.zeros((8, 8)), 0.98)
+    cams = make_cameras([(0, 0, 2.0)], (0, 0, 0), 50.0, 16, down=(0.0, -1.0, 0.0))
+    with pytest.raises(ValueError, match="clipped"):
+        ViewSampler(np.zeros((5, 3)), np.zeros((5, 3)), [np.zeros((16, 16, 3))], cams, [np.ones((16, 16))],
+                    TextureConfig(), clipped=[np.zeros((8, 8), bool)])
 
 
 def test_no_background_in_silhouette_band():

@@ -44,6 +44,21 @@ def test_losses_are_means_not_sums():
     assert torch.allclose(L.depth_loss(x, x * 0), L.depth_loss(big, big * 0))
 
 
+def test_rgb_loss_is_censored_at_over_exposed_channels():
+    """A clipped photo channel (≥ clipped_level) only says "at least this bright": a brighter prediction costs
+    nothing and gets no gradient there, a darker one costs as before; unclipped channels are plain L1."""
+    target = torch.tensor([[1.0, 1.0, 0.5], [1.0, 0.3, 0.2]])
+    pred = torch.tensor([[1.25, 0.9, 0.6], [1.1, 0.3, 0.2]], requires_grad=True)
+    loss = L.rgb_loss(pred, target, clipped_level=0.98)
+    loss.backward()
+    # row 0: 0 (brighter than clipped) + 0.1 (darker than clipped) + 0.1 (unclipped); row 1: 0
+    assert torch.isclose(loss, torch.tensor((0.0 + 0.1 + 0.1) / 3 / 2))
+    assert pred.grad[0, 0] == 0 and pred.grad[1, 0] == 0  # brighter than a clipped channel: free
+    assert pred.grad[0, 1] < 0 and pred.grad[0, 2] > 0
+    plain = L.rgb_loss(pred.detach(), target)  # off by default: the brighter predictions cost
+    assert torch.isclose(plain, torch.tensor((0.25 + 0.1 + 0.1 + 0.1) / 3 / 2))
+
+
 def test_sampler_boundary_oversampling(small_ws):
     data = load_scene(small_ws, torch.device("cpu"))
     s = RaySampler(data, boundary_fraction=1.0, generator=torch.Generator().manual_seed(0))
@@ -142,12 +157,13 @@ def test_loss_terms_are_named_after_their_weights(small_ws, tmp_path):
 
     from dvr.trainer import LossWeights
 
-    cfg = tiny_cfg(iterations=1, appearance=True, weights=LossWeights(tv=0.5, normal=0.3, appearance=2.0))
+    cfg = tiny_cfg(iterations=1, appearance=True, view_shading=True,
+                   weights=LossWeights(tv=0.5, normal=0.3, appearance=2.0, shading=0.7))
     t = Trainer(cfg, load_scene(small_ws, torch.device("cpu")), tmp_path)
     total, stats = t.losses(0)
     names = {f.name for f in fields(LossWeights)}
     terms = {k: v for k, v in stats.items() if k in names}
-    assert set(terms) == names  # all of them here: hits exist, appearance is on
+    assert set(terms) == names  # all of them here: hits exist, appearance and view shading are on
     assert set(stats) - names == {"psnr", "hit_frac"}
     assert torch.allclose(total.detach(), sum(getattr(cfg.weights, k) * v for k, v in terms.items()))
 
