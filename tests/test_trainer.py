@@ -2,6 +2,7 @@
 
 import json
 
+import pytest
 import torch
 
 from dvr import losses as L
@@ -10,8 +11,11 @@ from dvr.trainer import Trainer, load_model, train
 from tests.test_hard_cases import tiny_cfg
 
 
-def test_resume_matches_uninterrupted(small_ws, tmp_path):
-    cfg = tiny_cfg(iterations=8, checkpoint_every=4)
+@pytest.mark.parametrize("extras", [{}, {"appearance": True, "view_shading": True}])
+def test_resume_matches_uninterrupted(small_ws, tmp_path, extras):
+    """A run killed after its checkpoint and resumed equals an uninterrupted one (field, and the per-view gains and
+    view-shading MLP when they are on)."""
+    cfg = tiny_cfg(iterations=8, checkpoint_every=4, **extras)
     data = load_scene(small_ws, torch.device("cpu"))
     a = train(cfg, data, tmp_path / "a")
     # "killed" after 4 steps (the checkpoint at step 4 is on disk), then a fresh process resumes
@@ -19,8 +23,13 @@ def test_resume_matches_uninterrupted(small_ws, tmp_path):
     b = Trainer(cfg, data, tmp_path / "b")
     assert b.try_resume() and b.step == 4
     b.fit()
-    for (k, va), vb in zip(a.model.state_dict().items(), b.model.state_dict().values()):
-        assert torch.allclose(va, vb, atol=1e-5), k
+    for mod_a, mod_b in ((a.model, b.model), (a.appearance, b.appearance), (a.shading, b.shading)):
+        if mod_a is None:
+            continue
+        for (k, va), vb in zip(mod_a.state_dict().items(), mod_b.state_dict().values()):
+            assert torch.allclose(va, vb, atol=1e-5), k
+    if extras:
+        assert a.shading.net[-1].weight.abs().max() > 0  # it trained (zero at start)
 
 
 def test_log_and_outputs(small_ws, tmp_path):
