@@ -34,7 +34,6 @@ SCENES = {
 }
 HELDOUT = "heldout_"
 """Prefix of the held-out photos in a photos-only run's folder (sorted after the training photos)."""
-CLIPPED = 0.98  # a photo channel at or above this is over-exposed (the pipeline's clipped_level)
 
 
 def scene(name: str, over: dict) -> Path:
@@ -123,12 +122,12 @@ def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray, gain
     not over-exposed and clipped to [0, 1] as the camera clips (else a brighter held-out view's clipped pixels count
     against the right texture)."""
     from dvr.metrics import masked_psnr
-    from pipeline.texture import render_textured
+    from pipeline.texture import TextureConfig, render_textured
 
     h, w = photo.shape[:2]
     img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, R, centre, w, h)
     m = mask | hit
-    fit = m & (photo < CLIPPED).all(-1)
+    fit = m & (photo < TextureConfig.clipped_level).all(-1) if gain_fit else None
     if gain_fit and fit.any():
         a, b = img[fit], photo[fit]
         img = np.clip(img * ((a * b).sum(0) / np.maximum((a * a).sum(0), 1e-12)), 0.0, 1.0)
@@ -161,7 +160,6 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
     from pipeline.workspace import Workspace
 
     cli_over, over = knobs.get(spec.get("knob"), ([], {}))
-    over = dict(over)
     syn = scene(spec["scene"], {k: v for k, v in over.items() if k != "heldout_from"})
     # "heldout_from": measure against the held-out photos of the scene with these overrides (same cameras)
     ref = scene(spec["scene"], over["heldout_from"]) if "heldout_from" in over else syn

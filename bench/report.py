@@ -180,36 +180,36 @@ def findings(results: list[dict]) -> list[str]:
 def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
     """The ablations: per-view appearance (each scene without and with ``--train.appearance``) and the bake's
     discrete view selection (without and with ``--texture.view-selection``)."""
-    base = {(r["scene"], r["cameras"]): r for r in reconstructions(all_results) if "error" not in r
-            and r["preset"] == "default" and not r.get("knob") and r["scene"] in ("cow", "dtu")}
+    base = {(r["preset"], r["scene"], r["cameras"]): r for r in reconstructions(all_results) if "error" not in r
+            and not r.get("knob") and r["scene"] in ("cow", "dtu")}
     by = {(r["preset"], r["scene"], r["cameras"], r.get("knob")): r for r in rows}
+
+    def cow(knob: str | None, preset: str = "balanced") -> dict | None:
+        """The cow's run with GT cameras under ``knob`` (None: the preset's plain run)."""
+        return by.get((preset, "cow", "gt", knob)) if knob else base.get((preset, "cow", "gt"))
+
     appearance = "per-view appearance"
     looks = "the cow photographed with exposure ±25 %, white balance ±8 % and specular highlights"
     pairs = [(appearance, looks + ("" if p == "default" else f" (`{p}` preset)"),
-              by.get((p, "cow", "gt", "exposure+specular")), by.get((p, "cow", "gt", "exposure+specular, appearance")))
-             for p in ("default", "balanced")]
-    exposed = ("balanced", "cow", "gt", "exposure")
+              cow("exposure+specular", p), cow("exposure+specular, appearance", p)) for p in ("default", "balanced")]
     pairs += [(appearance, "the cow photographed with exposure ±25 % and white balance ±8 % only (`balanced` preset)",
-               by.get(exposed), by.get((*exposed[:3], "exposure, appearance")))]
-    pairs += [(appearance, "the plain cow (one exposure, no highlights)", base.get(("cow", "gt")),
-               by.get(("default", "cow", "gt", "appearance"))),
-              (appearance, "DTU scan24", base.get(("dtu", "sfm")), by.get(("default", "dtu", "sfm", "appearance")))]
+               cow("exposure"), cow("exposure, appearance")),
+              (appearance, "the plain cow (one exposure, no highlights)", cow(None, "default"),
+               cow("appearance", "default")),
+              (appearance, "DTU scan24", base.get(("default", "dtu", "sfm")),
+               by.get(("default", "dtu", "sfm", "appearance")))]
     shading, gloss = "view shading in training", "the exposure + specular cow (`balanced` preset"
-    balanced = next((r for r in reconstructions(all_results) if "error" not in r and r["preset"] == "balanced"
-                     and r["scene"] == "cow" and r["cameras"] == "gt" and not r.get("knob")), None)
-    pairs += [(shading, gloss + ", both without appearance)", by.get(("balanced", "cow", "gt", "exposure+specular")),
-               by.get(("balanced", "cow", "gt", "exposure+specular, view shading"))),
-              (shading, gloss + ", both with appearance)",
-               by.get(("balanced", "cow", "gt", "exposure+specular, appearance")),
-               by.get(("balanced", "cow", "gt", "exposure+specular, appearance + view shading"))),
-              ("per-view appearance + view shading", gloss + ", against neither)",
-               by.get(("balanced", "cow", "gt", "exposure+specular")),
-               by.get(("balanced", "cow", "gt", "exposure+specular, appearance + view shading"))),
-              (shading, "the plain cow (`balanced`)", balanced, by.get(("balanced", "cow", "gt", "view shading"))),
+    pairs += [(shading, gloss + ", both without appearance)", cow("exposure+specular"),
+               cow("exposure+specular, view shading")),
+              (shading, gloss + ", both with appearance)", cow("exposure+specular, appearance"),
+               cow("exposure+specular, appearance + view shading")),
+              ("per-view appearance + view shading", gloss + ", against neither)", cow("exposure+specular"),
+               cow("exposure+specular, appearance + view shading")),
+              (shading, "the plain cow (`balanced`)", cow(None), cow("view shading")),
               (shading, "DTU scan24 (both with appearance)", by.get(("default", "dtu", "sfm", "appearance")),
                by.get(("default", "dtu", "sfm", "appearance + view shading")))]
     selection = "view selection in the bake"
-    pairs += [(selection, what, base.get(key), by.get(("default", *key, "view selection")))
+    pairs += [(selection, what, base.get(("default", *key)), by.get(("default", *key, "view selection")))
               for what, key in (("the cow, GT cameras", ("cow", "gt")), ("the cow from photos", ("cow", "sfm")),
                                 ("DTU scan24", ("dtu", "sfm")))]
     out = []
@@ -225,10 +225,10 @@ def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
         if off.get("chamfer_rel") is not None:
             line += f", Chamfer {100 * off['chamfer_rel']:.3f} → {100 * on['chamfer_rel']:.3f} %"
         out.append(line + f", {off['total_s']:.0f} → {on['total_s']:.0f} s")
-    return out + appearance_ceiling(by)
+    return out + appearance_reference(by)
 
 
-def appearance_ceiling(by: dict) -> list[str]:
+def appearance_reference(by: dict) -> list[str]:
     """The exposure + specular held-out photos against the model of the same cow photographed without effects:
     what the photos' exposure and highlights cost a texture, next to what the appearance and view shading win."""
     key = ("balanced", "cow", "gt")

@@ -58,8 +58,8 @@ ABLATIONS = {
     "exposure+specular, appearance": (["--train.appearance"], {"effects_add": LOOKS}),
     "exposure+specular, appearance + view shading": (["--train.appearance", "--train.view-shading"],
                                                      {"effects_add": LOOKS}),
-    # the ceiling of a diffuse texture on those held-out photos: the model of the plain cow (no exposure change, no
-    # highlights) measured against them (same cameras)
+    # a reference on those held-out photos: the model of the plain cow (no exposure change, no highlights) measured
+    # against them (same cameras)
     "exposure+specular held-out, effect-free training": ([], {"heldout_from": {"effects_add": LOOKS}}),
     "exposure": ([], {"effects_add": [EXPOSURE]}),  # what the per-view appearance is for, without highlights
     "exposure, appearance": (["--train.appearance"], {"effects_add": [EXPOSURE]}),

@@ -249,6 +249,13 @@ class GridField(Field):
         return tv
 
 
+def fourier_encode(p: torch.Tensor, freqs: torch.Tensor) -> torch.Tensor:
+    """Points (..., 3) with the sines and cosines of ``freqs`` (L,) × each coordinate → (..., 3 + 6 L), in the
+    dtype of ``freqs``."""
+    x = p[..., None] * freqs.to(p.dtype)
+    return torch.cat([p, torch.sin(x).flatten(-2), torch.cos(x).flatten(-2)], dim=-1).to(freqs.dtype)
+
+
 class FourierMLPField(Field):
     """Reference: plain MLPs on Fourier-encoded xyz (occupancy + texture). One resolution: no ``resize_base``."""
 
@@ -266,8 +273,7 @@ class FourierMLPField(Field):
             self.occ[-1].bias.fill_(0.0)
 
     def _enc(self, p: torch.Tensor) -> torch.Tensor:
-        x = p[..., None] * self.freqs.to(p.dtype)
-        return torch.cat([p, torch.sin(x).flatten(-2), torch.cos(x).flatten(-2)], dim=-1).to(self.freqs.dtype)
+        return fourier_encode(p, self.freqs)
 
     def occupancy(self, p: torch.Tensor) -> torch.Tensor:
         """Occupancy logit (M,): the MLP plus a sphere prior of radius ``prior_radius``, support-clipped."""

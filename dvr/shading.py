@@ -20,6 +20,9 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
+from .fields import fourier_encode
+from .losses import safe_mean
+
 
 def sh_degree2(dirs: torch.Tensor) -> torch.Tensor:
     """Real spherical harmonics of degree ≤ 2 (9 values, orthonormal constants) of unit directions (M, 3)."""
@@ -31,14 +34,6 @@ def sh_degree2(dirs: torch.Tensor) -> torch.Tensor:
         0.31539156525252005 * (3.0 * z * z - 1.0),
         1.0925484305920792 * x * z, 0.5462742152960396 * (x * x - y * y),
     ], -1)
-
-
-def fourier_features(points: torch.Tensor, n_freqs: int) -> torch.Tensor:
-    """Points (M, 3) with sin and cos of 2^k π p for k < ``n_freqs`` → (M, 3 + 6 n_freqs)."""
-    out = [points]
-    for k in range(n_freqs):
-        out += [torch.sin((2.0 ** k) * torch.pi * points), torch.cos((2.0 ** k) * torch.pi * points)]
-    return torch.cat(out, -1)
 
 
 def reflect(dirs: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
@@ -54,7 +49,8 @@ class ViewShading(nn.Module):
         if hidden < 1 or n_freqs < 0 or max_shading <= 0:
             raise ValueError(f"ViewShading: hidden ≥ 1, n_freqs ≥ 0, max_shading > 0; got {hidden}, {n_freqs}, "
                              f"{max_shading}")
-        self.n_freqs, self.max_shading = n_freqs, max_shading
+        self.max_shading = max_shading
+        self.register_buffer("freqs", 2.0 ** torch.arange(n_freqs) * torch.pi, persistent=False)
         self.net = nn.Sequential(nn.Linear(3 + 6 * n_freqs + 3 + 9 + 1, hidden), nn.ReLU(),
                                  nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 3))
         nn.init.zeros_(self.net[-1].weight)
@@ -67,11 +63,11 @@ class ViewShading(nn.Module):
             raise ValueError(f"ViewShading: points, dirs and normals must all be (M, 3), got {tuple(points.shape)}, "
                              f"{tuple(dirs.shape)} and {tuple(normals.shape)}")
         r = reflect(dirs, normals)
-        x = torch.cat([fourier_features(points, self.n_freqs), r, sh_degree2(r),
+        x = torch.cat([fourier_encode(points, self.freqs), r, sh_degree2(r),
                        (dirs * normals).sum(-1, keepdim=True)], -1)
         return self.max_shading * torch.tanh(self.net(x))
 
     @staticmethod
     def regulariser(residual: torch.Tensor) -> torch.Tensor:
         """Mean absolute residual (0 for none): what the views agree on belongs to the diffuse field."""
-        return residual.abs().mean() if residual.numel() else residual.sum()
+        return safe_mean(residual.abs())

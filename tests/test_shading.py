@@ -7,7 +7,8 @@ import pytest
 import torch
 from torch.autograd import gradcheck
 
-from dvr.shading import ViewShading, fourier_features, reflect, sh_degree2
+from dvr.fields import fourier_encode
+from dvr.shading import ViewShading, reflect, sh_degree2
 
 
 def unit(v: torch.Tensor) -> torch.Tensor:
@@ -45,7 +46,7 @@ def test_shapes_bounds_and_view_dependence():
     r1, r2 = s(p, d1, n), s(p, d2, n)
     assert r1.shape == (200, 3) and r1.abs().max() <= 0.2
     assert (r1 - r2).abs().max() > 1e-3  # the same points seen from elsewhere shade differently
-    assert fourier_features(p, 3).shape == (200, 3 + 18)
+    assert fourier_encode(p, s.freqs).shape == (200, 3 + 18)
     assert s(torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0, 3)).shape == (0, 3)
 
 

@@ -274,9 +274,10 @@ def smooth_colour(p: np.ndarray) -> np.ndarray:
     return np.stack([0.55 + 0.15 * np.sin(3 * x + z), 0.35 + 0.1 * np.cos(2 * y), 0.45 + 0.1 * np.sin(2 * z + x)], 1)
 
 
-def bake_texels(mesh, imgs, cams, cfg):
+def bake_texels(mesh, imgs, cams, cfg, clipped=None):
     """texture_mesh on a synthetic mesh: the baked colour and the true colour of every texel, and its 3-D point."""
-    nv, nf, uvs, tex, _ = texture_mesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), imgs, cams, cfg, None)
+    nv, nf, uvs, tex, _ = texture_mesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), imgs, cams, cfg, None,
+                                       clipped=clipped)
     fid = rasterize_atlas(uvs, nf, tex.shape[0])
     r, c, pts, _ = texel_geometry(fid, uvs, nf, nv, np.ones_like(nv))
     return tex[r, c].astype(np.float64), smooth_colour(pts), pts
@@ -327,14 +328,10 @@ def test_an_over_exposed_view_does_not_darken_the_texture(plane_views):
     assert clipped[0].mean() > 0.1 and not any(c.any() for c in clipped[1:])
     err = {}
     for name, level in (("kept out", 0.98), ("off", 2.0)):
-        cfg = TextureConfig(**SYNTH, clipped_level=level)
-        nv, nf, uvs, tex, _ = texture_mesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), undone, cams, cfg,
-                                           None, clipped=[clipped_pixels(im, level) for im in taken])
-        fid = rasterize_atlas(uvs, nf, tex.shape[0])
-        r, c, pts, _ = texel_geometry(fid, uvs, nf, nv, np.ones_like(nv))
-        colour = smooth_colour(pts)
+        baked, colour, _ = bake_texels(mesh, undone, cams, TextureConfig(**SYNTH, clipped_level=level),
+                                       clipped=[clipped_pixels(im, level) for im in taken])
         over = (colour * gain >= 1.0).any(1)  # texels the bright view saw clipped
-        err[name] = float(np.abs(tex[r, c] - colour)[over].mean())
+        err[name] = float(np.abs(baked - colour)[over].mean())
     print("mean error of the texels the bright view saw clipped:", err)
     assert err["kept out"] < 0.01
     assert err["off"] > 2 * err["kept out"]  # what keeping clipped pixels out prevents
