@@ -146,6 +146,15 @@ def _read_mask(path: Path) -> np.ndarray:
     return read_mask(path) > 0
 
 
+def cameras_options(options: list[str]) -> list[str]:
+    """The options of a knob that set the cameras stage (``--cameras.x v``), in the CLI's spelling."""
+    out = []
+    for i, o in enumerate(options):
+        if o.startswith("--cameras."):
+            out += [o] + ([options[i + 1]] if i + 1 < len(options) and not options[i + 1].startswith("--") else [])
+    return out
+
+
 def train_mesh_texture(ws: Path, preset: str, options: list[str]) -> None:
     """Stages train, mesh and texture with the preset and the knob's options."""
     stages(("train", "mesh", "texture"), ws, config(preset, options))
@@ -181,7 +190,8 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
             for i, p in enumerate(held)]))
     else:
         full = work / "all"
-        stages(("cameras", "masks", "depth"), full, config(spec["preset"]), images=photos_folder(syn, work / "photos"))
+        stages(("cameras", "masks", "depth"), full, config(spec["preset"], cameras_options(cli_over)),
+               images=photos_folder(syn, work / "photos"))
         from dvr.data import list_images
 
         names = [p.stem for p in list_images(full / "images")]
@@ -288,10 +298,12 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     from dvr.metrics import pose_errors
     from pipeline.workspace import Workspace
 
-    full = RUNS / "dtu_all"
+    options = (knobs or {}).get(spec.get("knob"), ([], {}))[0]
+    cams_opts = cameras_options(options)  # a knob of the cameras stage gets its own SfM run, else the shared one
+    full = RUNS / ("dtu_all" + ("-" + "_".join(o.strip("-").replace(".", "_") for o in cams_opts) if cams_opts else ""))
     if not (full / ".stages" / "depth.json").exists():
         shutil.rmtree(full, ignore_errors=True)
-        stages(("cameras", "masks", "depth"), full, config(None), images=DTU / "images")
+        stages(("cameras", "masks", "depth"), full, config(None, cams_opts), images=DTU / "images")
     cams = load_cameras(full / "cameras.npz")
     paths = list_images(full / "images")
     names = [p.stem for p in paths]
@@ -301,7 +313,7 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     held = dtu_heldout(len(names))
     ws = work / "ws"
     subset_workspace(full, ws, [i for i in range(len(names)) if i not in held])
-    train_mesh_texture(ws, spec["preset"], (knobs or {}).get(spec.get("knob"), ([], {}))[0])
+    train_mesh_texture(ws, spec["preset"], options)
     tm, tex = textured(ws)
     from dvr.metrics import masked_psnr
     from pipeline.texture import render_textured

@@ -37,7 +37,7 @@ from .photos import (
     read_photo,
 )
 from .pose_sanity import axes_convergence, pose_sanity
-from .sfm import ladder, model_stats, run_rung, shortfalls, triangulate_at
+from .sfm import ladder, model_stats, refine_model, run_rung, shortfalls, triangulate_at
 from .support import SupportPlane, find_support
 from .workspace import Done, Job, StageError, Workspace
 
@@ -78,6 +78,14 @@ class CamerasConfig:
     distortion when its mean reprojection error is at most this fraction larger: on object-centric captures
     distortion and focal length trade off (a pinhole render came out with k = 0.11 and an 11 % long focal length
     at the same error). Negative: keep whatever SfM fits."""
+    final_passes: int = 0
+    """Passes of a final bundle adjustment after mapping (0: off, the model as mapped; 3 to use it): each drops the
+    observations more than ``final_error_ratio`` × the mean reprojection error off and re-adjusts with a robust
+    (Cauchy) loss. Where the camera model is exact it halves the pose error (a rendered cow: rotation 0.057° →
+    0.030°, held-out PSNR +0.9 to +1.2 dB); on real photos, whose principal point is off-centre and whose error tail
+    is model misfit rather than outliers, it costs (DTU: −0.5 and −1.3 dB on two mapped models). Off by default."""
+    final_error_ratio: float = 2.5
+    """Observations above this multiple of the model's mean reprojection error are dropped in each final pass."""
     max_features: int = 8192
     """SIFT features per image on the first rung (later rungs: at least 16 k)."""
     min_registered_fraction: float = 0.5
@@ -253,13 +261,14 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
             break
     _require_credible(None if best is None else best[1], rejected, inp, len(names), cfg.min_registered_fraction)
     rec, notes = prefer_pinhole(best[1], cfg.pinhole_tolerance)
-    for note in notes:
+    rec, final = refine_model(rec, cfg.final_passes, cfg.final_error_ratio)
+    for note in notes + final:
         print(f"cameras: {note}")
     best_dir = ws.root / "sfm" / "sparse" / "best"
     best_dir.mkdir(parents=True)
     rec.write(best_dir)
     shutil.copy(best[3], ws.root / "sfm" / "database.db")  # the database of the model kept, where COLMAP puts it
-    return rec, inp, {"rung": best[2], "rungs": tried}
+    return rec, inp, {"rung": best[2], "rungs": tried, "final_adjustment": final}
 
 
 def _require_credible(rec, rejected: dict, inp: Path, n_photos: int, min_fraction: float) -> None:

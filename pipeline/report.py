@@ -123,6 +123,8 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
                           + (f", {r['error']}" if r.get("error") else "") for r in cameras_stamp["rungs"])
         out.append(f"<li>SfM ladder: {html.escape(steps)} → kept <b>{html.escape(str(cameras_stamp.get('rung')))}</b>"
                    "</li>")
+    for note in cameras_stamp.get("final_adjustment") or []:  # SfM's final bundle adjustment passes
+        out.append(f"<li>{html.escape(note[0].upper() + note[1:])}</li>")
     board = cameras_stamp.get("board") or {}
     from_board = board.get("poses_from") == "board"
     if from_board:

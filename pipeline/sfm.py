@@ -232,6 +232,43 @@ def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, R
     return pycolmap.triangulate_points(rec, db, images, out)
 
 
+# ----------------------------------------------------------------------------- final adjustment
+def refine_model(rec, passes: int, error_ratio: float, min_points_per_view: int = 20):
+    """A final bundle adjustment of a mapped model (a copy; ``rec`` is not modified): ``passes`` times, drop the
+    observations whose reprojection error exceeds ``error_ratio`` × the model's mean error (and points left with
+    fewer than two views or a small triangulation angle), then re-adjust poses, points and focal length with a
+    Cauchy loss (1 px scale). Lens distortion is re-adjusted only where the model has some.
+
+    COLMAP's mapper keeps observations up to 4 px off; on a rendered capture of 0.34 px mean error their tail held
+    the rotation error at 0.059°, and this halves it (0.030°; the held-out photos' silhouettes then line up with the
+    mesh). Returns (model, notes); the model as given, with a note, when a view would keep fewer than
+    ``min_points_per_view`` points or the adjustment diverges."""
+    import pycolmap
+
+    if passes <= 0:
+        return rec, []
+    out = pycolmap.Reconstruction(rec)
+    e0, n0 = out.compute_mean_reprojection_error(), out.compute_num_observations()
+    distortion = any(np.any(c.params[list(c.extra_params_idxs())]) for c in out.cameras.values())
+    for _ in range(passes):
+        pycolmap.ObservationManager(out).filter_all_points3D(error_ratio * out.compute_mean_reprojection_error(),
+                                                             1.5)
+        opts = pycolmap.BundleAdjustmentOptions()
+        opts.print_summary = False
+        opts.refine_extra_params = distortion
+        opts.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+        pycolmap.bundle_adjustment(out, opts)
+    poses = [np.asarray(out.image(i).cam_from_world().matrix()) for i in out.reg_image_ids()]
+    if not (np.isfinite(poses).all() and np.isfinite(out.compute_mean_reprojection_error())):
+        return rec, ["final adjustment diverged; the mapped model is kept"]
+    fewest = min(out.image(i).num_points3D for i in out.reg_image_ids())
+    if fewest < min_points_per_view:
+        return rec, [f"final adjustment skipped: a view would keep {fewest} points (< {min_points_per_view})"]
+    e1, n1 = out.compute_mean_reprojection_error(), out.compute_num_observations()
+    return out, [f"final adjustment: {passes} passes kept {n1}/{n0} observations, mean reprojection error "
+                 f"{e0:.3f} → {e1:.3f} px"]
+
+
 # ----------------------------------------------------------------------------- judging a model
 def model_stats(rec, names: list[str]) -> dict:
     """Registered photos, reprojection error, track length and the median number of points a view observes."""
