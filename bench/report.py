@@ -178,8 +178,9 @@ def findings(results: list[dict]) -> list[str]:
 
 
 def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
-    """The ablations: per-view appearance (each scene without and with ``--train.appearance``) and the bake's
-    discrete view selection (without and with ``--texture.view-selection``)."""
+    """The ablations, each a run without and with its knob: per-view appearance (``--train.appearance``), view shading
+    (``--train.view-shading``), the bake's discrete view selection (``--texture.view-selection``) and the final SfM
+    adjustment (``--cameras.final-passes 3``; with its rotation error), then the appearance reference."""
     base = {(r["preset"], r["scene"], r["cameras"]): r for r in reconstructions(all_results) if "error" not in r
             and not r.get("knob")}
     by = {(r["preset"], r["scene"], r["cameras"], r.get("knob")): r for r in rows}

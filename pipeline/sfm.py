@@ -249,14 +249,13 @@ def refine_model(rec, passes: int, error_ratio: float, min_points_per_view: int 
         return rec, []
     out = pycolmap.Reconstruction(rec)
     e0, n0 = out.compute_mean_reprojection_error(), out.compute_num_observations()
-    distortion = any(np.any(c.params[list(c.extra_params_idxs())]) for c in out.cameras.values())
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.print_summary = False
+    opts.refine_extra_params = any(np.any(c.params[list(c.extra_params_idxs())]) for c in out.cameras.values())
+    opts.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     for _ in range(passes):
         pycolmap.ObservationManager(out).filter_all_points3D(error_ratio * out.compute_mean_reprojection_error(),
                                                              1.5)
-        opts = pycolmap.BundleAdjustmentOptions()
-        opts.print_summary = False
-        opts.refine_extra_params = distortion
-        opts.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
         pycolmap.bundle_adjustment(out, opts)
     poses = [np.asarray(out.image(i).cam_from_world().matrix()) for i in out.reg_image_ids()]
     if not (np.isfinite(poses).all() and np.isfinite(out.compute_mean_reprojection_error())):

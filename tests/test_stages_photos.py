@@ -324,12 +324,13 @@ def _mapped_with_outliers(seed: int = 0):
 
 
 def _rotation_error_deg(gt, rec) -> float:
-    errs = []
-    for i in gt.reg_image_ids():
-        A = gt.image(i).cam_from_world().rotation.matrix()
-        B = rec.image(i).cam_from_world().rotation.matrix()
-        errs.append(np.degrees(np.arccos(np.clip((np.trace(A @ B.T) - 1) / 2, -1, 1))))
-    return float(np.mean(errs))
+    """Mean rotation error (°) of ``rec``'s views against ``gt``'s after a Sim(3) of the centres (the adjustment
+    does not fix the gauge)."""
+    def poses(model):
+        M = np.stack([model.image(i).cam_from_world().matrix() for i in sorted(gt.reg_image_ids())])
+        return -np.einsum("nji,nj->ni", M[:, :, :3], M[:, :, 3]), M[:, :, :3]
+
+    return pose_errors(*poses(rec), *poses(gt))["rot_err_deg_mean"]
 
 
 def test_final_adjustment_drops_the_tail_the_mapper_keeps():
