@@ -5,7 +5,9 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
 
 1. seeds from geometry: sparse SfM points inside the object's unit sphere are object, points the view
    observes far outside it are background (visibility from the COLMAP tracks in ``sfm/``), and everything
-   outside the projected unit sphere is background (the object lies inside it by construction); plane-sweep
+   outside the projected unit sphere is background (the object lies inside it by construction), and so is, on a
+   support plane, every pixel that sees past the object's footprint (:func:`pipeline.support.footprint_prism`:
+   the table in front of the object, which GrabCut takes where it has the object's colours); plane-sweep
    stereo (:mod:`pipeline.mask_stereo`) adds object seeds where a pixel is photo-consistent only at depths
    inside the sphere and background seeds where only beyond it — what separates an object that has its
    backdrop's colours (and seeds GrabCut when given cameras come without SfM tracks); on the floor inside the
@@ -37,7 +39,7 @@ from dvr.hull import hull_logits
 
 from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
 from .raycast import mesh_intersector, pixel_center_rays
-from .support import GROUND_BAND
+from .support import GROUND_BAND, footprint_prism
 from .workspace import Done, Job, StageError, Workspace
 
 
@@ -68,6 +70,12 @@ class MasksConfig:
     """Depth hypotheses of the plane sweep (uniform in inverse depth)."""
     stereo_ratio: float = 0.5
     """A pixel is labelled when its best cost on one side is below this fraction of the other side's."""
+    footprint_margin: float = 0.1
+    """With a support plane: pixels that see past the object's footprint (the convex hull of its sparse points on
+    the plane, widened by this many unit-sphere radii, up to the sphere's top) are background seeds — the table
+    in front of an object, however much it has the object's colours. Negative: off."""
+    footprint_min_points: int = 100
+    """The footprint needs at least this many sparse points on the object (fewer need not span it)."""
     speck_fraction: float = 0.001
     """Holes and islands of an automatic mask smaller than this fraction of the image are filled / dropped (seed
     noise); larger holes stay."""
@@ -124,10 +132,12 @@ def _tracks(ws: Workspace, names: list[str]):
     return xyz, obs
 
 
-def object_region(cams: Cameras, i: int, h: int, w: int) -> np.ndarray:
+def object_region(cams: Cameras, i: int, h: int, w: int, footprint=None) -> np.ndarray:
     """(h, w) bool: pixels whose ray passes through the unit sphere ABOVE the support plane (all of the sphere
-    without one). The object lies there by construction: every other pixel is background."""
+    without one) and, given the object's ``footprint`` prism (:func:`pipeline.support.footprint_prism`), through
+    that. The object lies there by construction: every other pixel is background."""
     o, d = pixel_center_rays(cams.K[i], cams.R[i], cams.centers[i], w, h)
+    through = np.ones(len(d), bool) if footprint is None else mesh_intersector(footprint).intersects_any(o, d)
     near, far, hit = (x.numpy() for x in sphere_bounds(torch.from_numpy(o.copy()), torch.from_numpy(d)))
     if cams.ground is not None:
         h0 = plane_height(cams.ground, o)  # camera height (the same for every ray)
@@ -138,7 +148,7 @@ def object_region(cams: Cameras, i: int, h: int, w: int) -> np.ndarray:
         above_to = np.where((h0 >= 0) & (rate < 0), t_cross, np.inf)  # a camera above sinks below at t_cross
         near, far = np.maximum(near, above_from), np.minimum(far, above_to)
         hit &= (h0 >= 0) | (rate > 0)
-    return (hit & (far > near)).reshape(h, w)
+    return (hit & (far > near) & through).reshape(h, w)
 
 
 def support_in_sphere(cams: Cameras, i: int, h: int, w: int) -> np.ndarray:
@@ -194,12 +204,12 @@ def grabcut_all(imgs: list[np.ndarray], labels: list[np.ndarray], iters: int) ->
 
 
 def seed_labels(cams: Cameras, i: int, h: int, w: int, pts_n: np.ndarray | None, vis: list[int] | None,
-                r: int) -> np.ndarray:
+                r: int, footprint=None) -> np.ndarray:
     """GrabCut labels of view ``i`` from geometry: outside the object region (:func:`object_region`) background;
     the sparse points it observes drawn as discs — object inside the sphere (radius < 0.9) and above the support,
     background beyond ``BACKGROUND_RADIUS`` or on (or below) the support plane."""
     lab = np.full((h, w), cv2.GC_PR_BGD, np.uint8)
-    region = object_region(cams, i, h, w)
+    region = object_region(cams, i, h, w, footprint)
     lab[region] = cv2.GC_PR_FGD
     lab[~region] = cv2.GC_BGD
     if pts_n is not None and vis is not None and len(vis):
@@ -259,14 +269,21 @@ def background_depths(cams: Cameras, pts_n: np.ndarray | None, obs: dict | None,
     return far
 
 
-def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> dict:
+def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> tuple[dict, bool | None]:
     """Automatic masks of the BGR images ``imgs`` (module docstring: geometric and stereo seeds, GrabCut, multi-view
-    votes) into masks/; per name the confidence (IoU of the first GrabCut mask with the hull's silhouette)."""
+    votes) into masks/; per name the confidence (IoU of the first GrabCut mask with the hull's silhouette), and
+    whether the object's footprint seeded the floor (None without a support plane or with the footprint off)."""
     cams = load_cameras(ws.cameras, n_views=len(names))
     xyz, obs = _tracks(ws, names)
     pts_n = None
     if xyz is not None and len(xyz):
         pts_n = to_normalized(xyz, cams.scale_mat, uniform=True)
+    footprint = None
+    if pts_n is not None and cams.ground is not None and cfg.footprint_margin >= 0:
+        footprint = footprint_prism(pts_n, cams.ground, cfg.footprint_margin, cfg.footprint_min_points)
+        print("masks: " + ("the support plane beyond the object's footprint is background" if footprint is not None
+                           else f"fewer than {cfg.footprint_min_points} sparse points on the object: no footprint"))
+    used = None if cams.ground is None or cfg.footprint_margin < 0 else footprint is not None
     stereo = None
     if cfg.stereo and len(names) >= 3:
         stereo = stereo_seed_labels(imgs, cams, background_depths(cams, pts_n, obs, names), cfg.stereo_scale,
@@ -274,7 +291,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     seeds = []
     for i, (n, img) in enumerate(zip(names, imgs)):
         h, w = img.shape[:2]
-        lab = seed_labels(cams, i, h, w, pts_n, obs.get(n) if obs else None, cfg.seed_radius)
+        lab = seed_labels(cams, i, h, w, pts_n, obs.get(n) if obs else None, cfg.seed_radius, footprint)
         if stereo is not None:
             inside = lab != cv2.GC_BGD  # the projected sphere
             lab[inside & (stereo[i] == OBJECT)] = cv2.GC_FGD
@@ -307,7 +324,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
         inter = (first[i] & sil[i]).sum()
         union = (first[i] | sil[i]).sum()
         conf[n] = float(inter / union) if union else 0.0
-    return conf
+    return conf, used
 
 
 def support_outline(cams: Cameras, i: int, n: int = 180) -> np.ndarray | None:
@@ -353,15 +370,16 @@ def run(job: Job) -> Done:
         shutil.rmtree(ws.masks)
     ws.masks.mkdir(parents=True)
     imgs = [cv2.imread(str(p), cv2.IMREAD_COLOR) for p in paths]
+    footprint = None
     if masks is not None:
         conf = import_user_masks(ws, names, [(im.shape[1], im.shape[0]) for im in imgs], Path(masks), cfg)
     else:
-        conf = auto_masks(ws, names, imgs, cfg)
+        conf, footprint = auto_masks(ws, names, imgs, cfg)
     write_overlays(ws, names, imgs, load_cameras(ws.cameras, n_views=len(names)))
     (ws.masks / "confidence.json").write_text(json.dumps(conf, indent=1))
     low = [n for n, c in conf.items() if c < 0.8]
     if low:
         print(f"masks: low confidence for {', '.join(low)} (see {ws.masks / 'overlays'})", file=sys.stderr)
     print(f"masks: {len(names)} masks, mean confidence {np.mean(list(conf.values())):.3f} → {ws.masks}")
-    return Done({"mean_confidence": float(np.mean(list(conf.values())))})
+    return Done({"mean_confidence": float(np.mean(list(conf.values()))), "footprint": footprint})
 

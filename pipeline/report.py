@@ -144,6 +144,12 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
         out.append(f"<li>support plane found{detail} (normal {np.round(ground[:3], 3).tolist()} in the SfM frame). "
                    "It is background for the masks (orange outline in the overlays), nothing below it is object, "
                    "and the mesh is closed flat where the object touches it.</li>")
+        footprint = (ws.stamp("masks") or {}).get("footprint")
+        if footprint is not None:
+            out.append("<li>" + ("automatic masks: every pixel that sees past the object's footprint (its sparse "
+                                 "points on the plane, widened) is background, the table in front of it too."
+                                 if footprint else "automatic masks: too few sparse points on the object for a "
+                                 "footprint; the floor near it is left to GrabCut's colours.") + "</li>")
     else:
         out.append("<li>no support plane: the object is not standing on a textured surface the SfM points show "
                    "(held, hung, or on a plain backdrop); masks and mesh as without one.</li>")

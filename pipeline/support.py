@@ -183,3 +183,33 @@ def object_height(obj: np.ndarray, n: np.ndarray, d: float, target: np.ndarray) 
     """Height of the object (:func:`object_points` ``obj``) above the plane: the 98th percentile of its points'
     heights; twice the target's height with fewer than 5 points."""
     return float(np.percentile(obj @ n + d, 98)) if len(obj) >= 5 else 2 * float(target @ n + d)
+
+
+def footprint_prism(points: np.ndarray, ground: np.ndarray, margin: float, min_points: int):
+    """The space the object standing on the plane ``ground`` (4,) can fill, from its sparse points (M, 3), all in the
+    normalized frame: the convex hull of the points inside the unit sphere and above ``GROUND_BAND``, dropped onto
+    the plane and widened by ``margin`` in every direction along it, raised from just below the plane to the top
+    of the unit sphere (a trimesh, watertight). A pixel whose ray misses it sees no object: the floor in front of
+    the object, or beside it, is background there however pale it is. ``None`` with fewer than ``min_points``
+    such points (a weakly textured object's few points need not span its footprint)."""
+    import trimesh
+    from scipy.spatial import ConvexHull, QhullError
+
+    n, d = np.asarray(ground[:3], float), float(ground[3])
+    h = points @ n + d
+    obj = points[(h > GROUND_BAND) & (np.linalg.norm(points, axis=1) < 1.0)]
+    if len(obj) < max(min_points, 3):
+        return None
+    e1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    flat = np.stack([obj @ e1, obj @ e2], axis=1)
+    try:
+        flat = flat[ConvexHull(flat).vertices]
+    except QhullError:  # collinear points: their ring below still bounds them
+        pass
+    th = np.linspace(0.0, 2 * np.pi, 24, endpoint=False)
+    ring = (flat[:, None, :] + margin * np.stack([np.cos(th), np.sin(th)], 1)[None]).reshape(-1, 2)
+    base = ring[:, :1] * e1 + ring[:, 1:] * e2 - d * n  # on the plane
+    verts = np.concatenate([base - 0.005 * n, base + (1.0 + d + 0.005) * n])
+    return trimesh.convex.convex_hull(verts)

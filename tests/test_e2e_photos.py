@@ -22,11 +22,12 @@ from dvr.cameras import load_cameras
 from dvr.data import list_images
 from dvr.metrics import chamfer_fscore, masked_psnr, pose_errors, umeyama
 from pipeline.config import load_config
+from pipeline.report import capture_section
 from pipeline.stages import run_stage
 from pipeline.synth import load_scene_file, write_scene
 from pipeline.synth.phone import upright_roll, write_phone_folder
 from pipeline.texture import render_textured
-from pipeline.workspace import subset_workspace
+from pipeline.workspace import Workspace, subset_workspace
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.slow
@@ -118,6 +119,11 @@ def test_phone_folder_on_a_floor_to_textured_mesh(tmp_path):
     with_plane, without = iou(full), iou(flat)
     print(json.dumps({"mask_iou": with_plane, "mask_iou_without_plane": without}))
     assert with_plane >= 0.95 and without < 0.9
+    # the masks' stamp says whether the object's footprint seeded the floor (None: no plane), and the report too
+    used = Workspace(full).stamp("masks")["footprint"]
+    assert isinstance(used, bool) and Workspace(flat).stamp("masks")["footprint"] is None
+    words = "the table in front of it too" if used else "too few sparse points on the object"
+    assert words in capture_section(Workspace(full), Workspace(full).stamp("cameras"))
 
     # the user's masks win over the plane: a strip of floor the user marked as object stays object
     own, mine = tmp_path / "my masks", tmp_path / "with my masks"
@@ -130,6 +136,7 @@ def test_phone_folder_on_a_floor_to_textured_mesh(tmp_path):
         cv2.imwrite(str(own / f"{n}.png"), m)
     shutil.copytree(full, mine, ignore=shutil.ignore_patterns("masks", "depth", ".stages"))
     run_stage("masks", mine, cfg, masks_dir=own)
+    assert Workspace(mine).stamp("masks")["footprint"] is None  # the user's masks: no footprint seeds
     for n in names:
         assert np.array_equal(cv2.imread(str(mine / "masks" / f"{n}.png"), 0) > 127,
                               cv2.imread(str(own / f"{n}.png"), 0) > 127), n

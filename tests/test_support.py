@@ -183,3 +183,64 @@ def test_support_in_sphere_marks_the_floor_inside_the_sphere_only():
     assert soft.sum() > 1000 and np.array_equal(soft.reshape(-1), expect)
     assert not soft[:100].any()  # the upper part of the picture looks over the floor disc
     assert not support_in_sphere(Cameras(K, R, t, np.eye(4)), 0, 240, 320).any()
+
+
+def _box_on_floor(n=400, half=(0.3, 0.2), top=0.3, floor=-0.5):
+    """Points on the sides and top of a box standing on the floor z = ``floor`` (normalized frame)."""
+    p = RNG.uniform([-half[0], -half[1], floor + 0.04], [half[0], half[1], top], size=(n, 3))
+    side = RNG.integers(0, 3, n)  # push each point onto one face: x side, y side or the top
+    p[side == 0, 0] = np.sign(p[side == 0, 0]) * half[0]
+    p[side == 1, 1] = np.sign(p[side == 1, 1]) * half[1]
+    p[side == 2, 2] = top
+    return p
+
+
+def test_footprint_prism_holds_the_object_not_the_floor():
+    """The footprint prism: the convex hull of the object's points on the plane, widened by the margin, up to the
+    sphere's top. It holds every object point and the floor within the margin, not the floor beyond it; the floor's
+    own points (and those beyond the sphere) do not widen it; too few object points give none."""
+    from pipeline.support import footprint_prism
+
+    plane = np.array([0.0, 0.0, 1.0, 0.5])  # z = −0.5
+    box = _box_on_floor()
+    floor = _floor(3000, radius=0.95, z=-0.5, noise=0.003)
+    far = np.array([[0.0, 0.0, 1.5], [1.3, 0.0, -0.2]])  # beyond the unit sphere: not the object
+    prism = footprint_prism(np.concatenate([box, floor, far]), plane, margin=0.1, min_points=100)
+    assert prism.is_watertight
+    assert prism.contains(box).all()
+    z = -0.49
+    near = np.array([[0.37, 0.0, z], [0.0, 0.27, z], [-0.37, -0.1, z], [0.0, 0.0, 0.99]])  # within 0.1 of the box
+    beyond = np.array([[0.45, 0.0, z], [0.0, 0.35, z], [0.0, -0.6, z], [0.45, 0.35, z], [0.0, 0.0, -0.6]])
+    assert prism.contains(near).all() and not prism.contains(beyond).any()
+    assert footprint_prism(np.concatenate([box[:50], floor]), plane, 0.1, 100) is None
+    assert footprint_prism(floor, plane, 0.1, 100) is None
+
+
+def test_footprint_makes_the_floor_round_the_object_background():
+    """The masks' object region with the footprint: the pale floor in front of and beside the object, which the
+    sphere alone leaves to GrabCut's colours, becomes background; every pixel of the object stays in the region,
+    and so does the floor hidden behind it."""
+    from pipeline.masks import object_region
+    from pipeline.raycast import pixel_center_rays
+
+    C, R = _ring(height=1.0, target=(0.0, 0.0, -0.2))
+    t = -np.einsum("nij,nj->ni", R, C)
+    K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(C), 1, 1))
+    cams = Cameras(K, R, t, np.eye(4), np.array([0.0, 0.0, 1.0, 0.5]))
+    from pipeline.support import footprint_prism
+
+    box = _box_on_floor()
+    prism = footprint_prism(box, cams.ground, 0.1, 100)
+    sphere_only, tight = object_region(cams, 0, 240, 320), object_region(cams, 0, 240, 320, prism)
+    assert (tight <= sphere_only).all() and tight.sum() < 0.6 * sphere_only.sum()
+    uvw = (cams.P[0] @ np.c_[box, np.ones(len(box))].T).T
+    uv = np.floor(uvw[:, :2] / uvw[:, 2:]).astype(int)  # the pixel each point falls in
+    assert tight[uv[:, 1], uv[:, 0]].all()  # the object
+    o, d = pixel_center_rays(K[0], R[0], C[0], 320, 240)
+    s = -(o[:, 2] + 0.5) / np.where(d[:, 2] < 0, d[:, 2], np.nan)
+    x = (o + np.nan_to_num(s)[:, None] * d).reshape(240, 320, 3)
+    on_floor = sphere_only & (np.nan_to_num(s, nan=-1).reshape(240, 320) > 0)
+    front = on_floor & (x[..., 0] > 0.45)  # between the camera (x = 3) and the box (x ≤ 0.3): seen, not hidden
+    behind = on_floor & (x[..., 0] < -0.45) & (np.abs(x[..., 1]) < 0.1)  # the rays cross the box first
+    assert front.sum() > 500 and not tight[front].any() and sphere_only[front].all()
+    assert behind.sum() > 50 and tight[behind].all()
