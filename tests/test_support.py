@@ -222,13 +222,12 @@ def test_footprint_makes_the_floor_round_the_object_background():
     and so does the floor hidden behind it."""
     from pipeline.masks import object_region
     from pipeline.raycast import pixel_center_rays
+    from pipeline.support import footprint_prism
 
     C, R = _ring(height=1.0, target=(0.0, 0.0, -0.2))
     t = -np.einsum("nij,nj->ni", R, C)
     K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(C), 1, 1))
     cams = Cameras(K, R, t, np.eye(4), np.array([0.0, 0.0, 1.0, 0.5]))
-    from pipeline.support import footprint_prism
-
     box = _box_on_floor()
     prism = footprint_prism(box, cams.ground, 0.1, 100)
     sphere_only, tight = object_region(cams, 0, 240, 320), object_region(cams, 0, 240, 320, prism)
