@@ -39,7 +39,7 @@ from dvr.hull import hull_logits
 
 from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
 from .raycast import mesh_intersector, pixel_center_rays
-from .support import GROUND_BAND, footprint_prism
+from .support import GROUND_BAND, footprint_prism, plane_basis
 from .workspace import Done, Job, StageError, Workspace
 
 
@@ -278,12 +278,13 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     pts_n = None
     if xyz is not None and len(xyz):
         pts_n = to_normalized(xyz, cams.scale_mat, uniform=True)
-    footprint = None
-    if pts_n is not None and cams.ground is not None and cfg.footprint_margin >= 0:
-        footprint = footprint_prism(pts_n, cams.ground, cfg.footprint_margin, cfg.footprint_min_points)
-        print("masks: " + ("the support plane beyond the object's footprint is background" if footprint is not None
-                           else f"fewer than {cfg.footprint_min_points} sparse points on the object: no footprint"))
-    used = None if cams.ground is None or cfg.footprint_margin < 0 else footprint is not None
+    footprint, used = None, None
+    if cams.ground is not None and cfg.footprint_margin >= 0:
+        if pts_n is not None:
+            footprint = footprint_prism(pts_n, cams.ground, cfg.footprint_margin, cfg.footprint_min_points)
+            print("masks: " + ("the support plane beyond the object's footprint is background" if footprint is not None
+                               else f"fewer than {cfg.footprint_min_points} sparse points on the object: no footprint"))
+        used = footprint is not None
     stereo = None
     if cfg.stereo and len(names) >= 3:
         stereo = stereo_seed_labels(imgs, cams, background_depths(cams, pts_n, obs, names), cfg.stereo_scale,
@@ -333,9 +334,7 @@ def support_outline(cams: Cameras, i: int, n: int = 180) -> np.ndarray | None:
     if cams.ground is None or abs(cams.ground[3]) >= 1.0:
         return None
     nrm, d = cams.ground[:3], cams.ground[3]
-    e1 = np.cross(nrm, [1.0, 0, 0] if abs(nrm[0]) < 0.9 else [0, 1.0, 0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(nrm, e1)
+    e1, e2 = plane_basis(nrm)
     th = np.linspace(0, 2 * np.pi, n)
     pts = -d * nrm + np.sqrt(1 - d * d) * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
     uv, z = project_points(cams.P[i], pts)

@@ -70,13 +70,17 @@ def _fit(points: np.ndarray) -> tuple[np.ndarray, float]:
     return n, -float(n @ c)
 
 
+def plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (e1, e2) spanning the plane orthogonal to the unit vector ``normal``, with e1 × e2 = normal."""
+    e1 = np.cross(normal, [1.0, 0, 0] if abs(normal[0]) < 0.9 else [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(normal, e1)
+
+
 def _sectors(points: np.ndarray, foot: np.ndarray, normal: np.ndarray, inner: float, outer: float) -> int:
     """How many of 8 angular sectors around ``foot`` (in the plane) hold at least 3 of ``points`` at a distance
     between ``inner`` and ``outer`` from it."""
-    helper = np.array([1.0, 0, 0]) if abs(normal[0]) < 0.9 else np.array([0, 1.0, 0])
-    e1 = np.cross(normal, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(normal, e1)
+    e1, e2 = plane_basis(normal)
     q = points - foot
     dist = np.linalg.norm(q, axis=1)
     near = (dist >= inner) & (dist < outer)
@@ -200,9 +204,7 @@ def footprint_prism(points: np.ndarray, ground: np.ndarray, margin: float, min_p
     obj = points[(h > GROUND_BAND) & (np.linalg.norm(points, axis=1) < 1.0)]
     if len(obj) < max(min_points, 3):
         return None
-    e1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
+    e1, e2 = plane_basis(n)
     flat = np.stack([obj @ e1, obj @ e2], axis=1)
     try:
         flat = flat[ConvexHull(flat).vertices]

@@ -17,6 +17,7 @@ import functools
 import cv2
 import numpy as np
 
+from ..support import plane_basis
 from .scene import Effect
 
 PATTERNS = ("wood", "tiles", "checker", "noise")
@@ -147,10 +148,7 @@ def light_directions(direction: np.ndarray, n: int = LIGHT_SAMPLES, radius: floa
     """``n`` fixed unit directions spread over a cone of half-angle ``radius`` around ``direction``
     (a Fibonacci spiral over the disc), (n, 3)."""
     a = direction / np.linalg.norm(direction)
-    helper = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 1.0, 0])
-    b1 = np.cross(a, helper)
-    b1 /= np.linalg.norm(b1)
-    b2 = np.cross(a, b1)
+    b1, b2 = plane_basis(a)
     k = np.arange(n) + 0.5
     r = radius * np.sqrt(k / n)
     phi = k * 2.39996323  # golden angle
