@@ -314,6 +314,17 @@ def test_highlight_in_one_view_does_not_reach_texture(plane_views):
     assert err[0.0] > 0.1  # what the robust pass prevents
 
 
+def test_float64_photos_bake_as_float32_photos(plane_views):
+    """Photos read as float64 (8-bit values / 255, not representable in float32) bake to the texture of the same
+    photos in float32; before texture_mesh cast them, the photo-consistency pass's extremes (float32) never equalled
+    a float64 sample and indexed past the samples (IndexError)."""
+    mesh, cams, imgs, _ = plane_views
+    photos = [np.round(im.astype(np.float64) * 255) / 255 for im in imgs]
+    got, _, _ = bake_texels(mesh, photos, cams, TextureConfig(**SYNTH))
+    want, _, _ = bake_texels(mesh, [p.astype(np.float32) for p in photos], cams, TextureConfig(**SYNTH))
+    assert np.array_equal(got, want)
+
+
 def test_an_over_exposed_view_does_not_darken_the_texture(plane_views):
     """One of four views photographed 3× brighter (a dark backdrop fooling auto exposure), clipped at 1 as a camera
     clips, then divided by its gain (as the bake undoes a fitted exposure): its clipped pixels say only "at least
