@@ -312,8 +312,8 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
     the photos' resolution on the object (:func:`atlas_size`). ``field_gain``: see :func:`fill_unseen`;
     ``clipped``: the photos' over-exposed pixels (:func:`pipeline.blend.clipped_pixels` of the photos as taken,
     before :func:`undo_appearance`), down-weighted by ``clipped_weight``; default: none."""
-    images = [np.asarray(im, np.float32) for im in images]  # the bake's dtype: float64 photos would take twice the
-    # memory and time, and their extremes would not round-trip through the float32 statistics
+    images = [np.asarray(im, np.float32) for im in images]  # the bake's dtype: the extremes of float64 photos would
+    # not round-trip through the float32 statistics of the photo-consistency pass
     base = trimesh.Trimesh(verts_n, faces, process=False)
     sizes = [(im.shape[1], im.shape[0]) for im in images]
     side = atlas_size(base, cams, sizes, cfg)
