@@ -26,6 +26,7 @@ SCENES = {
     "cow": ROOT / "configs" / "scenes" / "cow_floor.yaml",
     "jar": ROOT / "configs" / "scenes" / "jar_floor.yaml",
     "book": ROOT / "configs" / "scenes" / "book_floor.yaml",
+    "jar_alike": ROOT / "configs" / "scenes" / "jar_table_alike.yaml",  # the jar on a table of its own colours
     "cow_float": ROOT / "configs" / "scenes" / "cow_backdrop.yaml",
     "sphere": ROOT / "configs" / "scenes" / "sphere_checker.yaml",
     "torus_board": ROOT / "configs" / "scenes" / "torus_board.yaml",

@@ -118,7 +118,8 @@ def plan(quick: bool) -> list[dict]:
     out = [{"scene": s, "cameras": "gt", "preset": p} for s in FLOOR_SCENES for p in ("fast", "default", "quality")]
     out += [{"scene": s, "cameras": "gt", "preset": "balanced"} for s in FLOOR_SCENES]
     out += [{"scene": "cow_float", "cameras": "gt", "preset": "default"}]
-    out += [{"scene": s, "cameras": "sfm", "preset": "default"} for s in (*FLOOR_SCENES, "cow_float", "sphere_board")]
+    from_photos = (*FLOOR_SCENES, "cow_float", "sphere_board", "jar_alike")
+    out += [{"scene": s, "cameras": "sfm", "preset": "default"} for s in from_photos]
     out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k} for k in KNOBS]
     out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k, "ablation": True}
             for k in ("exposure+specular", "exposure+specular, appearance", "appearance", "view selection")]

@@ -83,8 +83,8 @@ class CamerasConfig:
     observations more than ``final_error_ratio`` × the mean reprojection error off and re-adjusts with a robust
     (Cauchy) loss. Where the camera model is exact it halves the pose error (a rendered cow: rotation 0.057° →
     0.030°, held-out PSNR +0.3 to +1.2 dB); on real photos the error tail is partly model misfit (DTU's principal
-    point is off-centre), and the gain is not shown: DTU level (+0.06 dB), the jar and the book −1.0 and −0.9 dB
-    (each pair two SfM runs, which alone differ by up to ±1 dB). Off by default."""
+    point is off-centre), and the gain is not shown: DTU level (+0.06 dB), the jar −0.2 and −1.0 dB in two bench runs,
+    the book −0.9 dB (each pair two SfM runs, which alone differ by up to ±1 dB). Off by default."""
     final_error_ratio: float = 2.5
     """Observations above this multiple of the model's mean reprojection error are dropped in each final pass."""
     max_features: int = 8192

@@ -7,7 +7,9 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
    observes far outside it are background (visibility from the COLMAP tracks in ``sfm/``), and everything
    outside the projected unit sphere is background (the object lies inside it by construction), and so is, on a
    support plane, every pixel that sees past the object's footprint (:func:`pipeline.support.footprint_prism`:
-   the table in front of the object, which GrabCut takes where it has the object's colours); plane-sweep
+   the table in front of the object, which GrabCut takes where it has the object's colours; with too few sparse
+   points on the object, the footprint of the first masks' visual hull, :func:`hull_footprint`, seeds the vote
+   rounds instead); plane-sweep
    stereo (:mod:`pipeline.mask_stereo`) adds object seeds where a pixel is photo-consistent only at depths
    inside the sphere and background seeds where only beyond it — what separates an object that has its
    backdrop's colours (and seeds GrabCut when given cameras come without SfM tracks); on the floor inside the
@@ -35,12 +37,15 @@ import torch
 
 from dvr.cameras import Cameras, load_cameras, plane_height, project_points, sphere_bounds, to_normalized
 from dvr.data import list_images, pad_stack, read_mask
-from dvr.hull import hull_logits
+from dvr.hull import grid_points, hull_logits
 
 from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
 from .raycast import mesh_intersector, pixel_center_rays
 from .support import GROUND_BAND, footprint_prism, plane_basis
 from .workspace import Done, Job, StageError, Workspace
+
+FOOTPRINT_IN_FRAME = 0.75
+"""Fraction of the views that must have a hull cell in frame for :func:`hull_footprint` to count it."""
 
 
 @dataclass
@@ -76,6 +81,10 @@ class MasksConfig:
     in front of an object, however much it has the object's colours. Negative: off."""
     footprint_min_points: int = 100
     """The footprint needs at least this many sparse points on the object (fewer need not span it)."""
+    footprint_hull_height: float = 0.1
+    """With fewer points than that (a weakly textured object), the footprint is that of the visual hull of the
+    first masks: its cells higher than this above the plane (unit-sphere radii; the table the masks took lies
+    below it, as the low views carve the space above it). 0: off."""
     speck_fraction: float = 0.001
     """Holes and islands of an automatic mask smaller than this fraction of the image are filled / dropped (seed
     noise); larger holes stay."""
@@ -254,6 +263,31 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     return out
 
 
+def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig):
+    """:func:`pipeline.support.footprint_prism` of the visual hull of ``masks`` (carving with ``carve_min_views``):
+    the hull's grid cells more than ``footprint_hull_height`` above the support plane stand for the object's
+    points, where at least :data:`FOOTPRINT_IN_FRAME` of the views have them in frame (elsewhere, near the
+    sphere's edge, few views carve). A ring of table that every mask took lies flat on the plane, and the low
+    views carve the space above it. The hull bounds the object already, so the prism is one hull cell wider than
+    those cells and ends one cell above the hull's top (sparse points give no top): the floor behind the object,
+    seen over it, is background too. None when no cell stands that high."""
+    canvas, sizes = pad_stack([m.astype(np.float32) for m in masks])
+    lg = hull_logits(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res=cfg.hull_res,
+                     min_views=cfg.carve_min_views, ground=cams.ground, sizes=torch.from_numpy(sizes))
+    cells = grid_points(cfg.hull_res)[lg.reshape(-1).cpu() > 0].numpy().astype(np.float64)
+    in_frame = np.zeros(len(cells), np.int32)
+    for P, (w, h) in zip(cams.P, sizes):
+        uv, z = project_points(P, cells)
+        in_frame += (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w) & (uv[:, 1] >= 0) & (uv[:, 1] <= h)
+    cells = cells[in_frame >= FOOTPRINT_IN_FRAME * len(cams)]  # the hull is only carved where the views see
+    height = plane_height(cams.ground, cells)
+    tall = height > cfg.footprint_hull_height
+    if not tall.any():
+        return None
+    cell = 2.0 / cfg.hull_res  # the hull bounds the object already: a cell of margin, not the points' margin
+    return footprint_prism(cells[tall], cams.ground, cell, 1, top=float(height.max()) + cell)
+
+
 def background_depths(cams: Cameras, pts_n: np.ndarray | None, obs: dict | None, names: list[str]) -> np.ndarray:
     """Per view, the ray depth the stereo sweep reaches: 1.1 × the 95th percentile of the distances to the
     background points (beyond ``BACKGROUND_RADIUS``) the view observes; 3 × the distance to the sphere centre
@@ -269,10 +303,12 @@ def background_depths(cams: Cameras, pts_n: np.ndarray | None, obs: dict | None,
     return far
 
 
-def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> tuple[dict, bool | None]:
+def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray],
+               cfg: MasksConfig) -> tuple[dict, str | bool | None]:
     """Automatic masks of the BGR images ``imgs`` (module docstring: geometric and stereo seeds, GrabCut, multi-view
     votes) into masks/; per name the confidence (IoU of the first GrabCut mask with the hull's silhouette), and
-    whether the object's footprint seeded the floor (None without a support plane or with the footprint off)."""
+    where the object's footprint that seeded the floor came from: "sparse points", "masks' hull", False (none
+    could be built), None (no support plane, or the footprint off)."""
     cams = load_cameras(ws.cameras, n_views=len(names))
     xyz, obs = _tracks(ws, names)
     pts_n = None
@@ -282,9 +318,13 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     if cams.ground is not None and cfg.footprint_margin >= 0:
         if pts_n is not None:
             footprint = footprint_prism(pts_n, cams.ground, cfg.footprint_margin, cfg.footprint_min_points)
-            print("masks: " + ("the support plane beyond the object's footprint is background" if footprint is not None
-                               else f"fewer than {cfg.footprint_min_points} sparse points on the object: no footprint"))
-        used = footprint is not None
+            if footprint is not None:
+                print("masks: the support plane beyond the object's footprint is background")
+            else:
+                print(f"masks: fewer than {cfg.footprint_min_points} sparse points on the object: "
+                      + ("the footprint comes from the first masks' hull" if cfg.footprint_hull_height > 0
+                         else "no footprint"))
+        used = footprint is not None and "sparse points"
     stereo = None
     if cfg.stereo and len(names) >= 3:
         stereo = stereo_seed_labels(imgs, cams, background_depths(cams, pts_n, obs, names), cfg.stereo_scale,
@@ -301,6 +341,13 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
             lab[bg & support_in_sphere(cams, i, h, w)] = cv2.GC_PR_BGD
         seeds.append(lab)
     first = [remove_specks(m, cfg.speck_fraction) for m in grabcut_all(imgs, seeds, cfg.grabcut_iters)]
+    if used is False and cfg.footprint_hull_height > 0:  # too few points: the footprint of the first masks' hull
+        footprint = hull_footprint(first, cams, cfg)
+        used = footprint is not None and "masks' hull"
+        print("masks: " + ("the support plane beyond that footprint is background" if used
+                           else "the first masks' hull stands nowhere above the plane: no footprint"))
+        for i, img in enumerate(imgs if used else []):  # hard background seeds for the vote rounds
+            seeds[i][~object_region(cams, i, img.shape[0], img.shape[1], footprint)] = cv2.GC_BGD
     k = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
     current = first
     for _ in range(max(1, cfg.vote_rounds)):

@@ -146,10 +146,12 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
                    "and the mesh is closed flat where the object touches it.</li>")
         footprint = (ws.stamp("masks") or {}).get("footprint")
         if footprint is not None:
-            out.append("<li>" + ("automatic masks: every pixel that sees past the object's footprint (its sparse "
-                                 "points on the plane, widened) is background, the table in front of it too."
-                                 if footprint else "automatic masks: too few sparse points on the object for a "
-                                 "footprint; the floor near it is left to GrabCut's colours.") + "</li>")
+            source = {"sparse points": "its sparse points on the plane, widened",
+                      "masks' hull": "the visual hull of the first masks: too few sparse points on the object"}
+            out.append("<li>" + (f"automatic masks: every pixel that sees past the object's footprint "
+                                 f"({source.get(footprint, footprint)}) is background, the table in front of it too."
+                                 if footprint else "automatic masks: no footprint of the object could be built; the "
+                                 "floor near it is left to GrabCut's colours.") + "</li>")
     else:
         out.append("<li>no support plane: the object is not standing on a textured surface the SfM points show "
                    "(held, hung, or on a plain backdrop); masks and mesh as without one.</li>")

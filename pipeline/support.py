@@ -189,13 +189,15 @@ def object_height(obj: np.ndarray, n: np.ndarray, d: float, target: np.ndarray) 
     return float(np.percentile(obj @ n + d, 98)) if len(obj) >= 5 else 2 * float(target @ n + d)
 
 
-def footprint_prism(points: np.ndarray, ground: np.ndarray, margin: float, min_points: int):
+def footprint_prism(points: np.ndarray, ground: np.ndarray, margin: float, min_points: int,
+                    top: float | None = None):
     """The space the object standing on the plane ``ground`` (4,) can fill, from its sparse points (M, 3), all in the
     normalized frame: the convex hull of the points inside the unit sphere and above ``GROUND_BAND``, dropped onto
     the plane and widened by ``margin`` in every direction along it, raised from just below the plane to the top
-    of the unit sphere (a trimesh, watertight). A pixel whose ray misses it sees no object: the floor in front of
-    the object, or beside it, is background there however pale it is. ``None`` with fewer than ``min_points``
-    such points (a weakly textured object's few points need not span its footprint)."""
+    of the unit sphere, or to ``top`` above the plane when given (a trimesh, watertight). A pixel whose ray misses
+    it sees no object: the floor in front of the object, or beside it (and with ``top`` behind it), is background
+    there however pale it is. ``None`` with fewer than ``min_points`` such points (a weakly textured object's few
+    points need not span its footprint)."""
     import trimesh
     from scipy.spatial import ConvexHull, QhullError
 
@@ -213,5 +215,6 @@ def footprint_prism(points: np.ndarray, ground: np.ndarray, margin: float, min_p
     th = np.linspace(0.0, 2 * np.pi, 24, endpoint=False)
     ring = (flat[:, None, :] + margin * np.stack([np.cos(th), np.sin(th)], 1)[None]).reshape(-1, 2)
     base = ring[:, :1] * e1 + ring[:, 1:] * e2 - d * n  # on the plane
-    verts = np.concatenate([base - 0.005 * n, base + (1.0 + d + 0.005) * n])
+    height = 1.0 + d + 0.005 if top is None else top
+    verts = np.concatenate([base - 0.005 * n, base + height * n])
     return trimesh.convex.convex_hull(verts)
