@@ -146,7 +146,9 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
                    "and the mesh is closed flat where the object touches it.</li>")
         footprint = (ws.stamp("masks") or {}).get("footprint")
         if footprint is not None:
-            source = {"sparse points": "its sparse points on the plane, widened",
+            points = "its sparse points on the plane, widened"
+            # True: a stamp of stop 25, when sparse points were the only source
+            source = {"sparse points": points, True: points,
                       "masks' hull": "the visual hull of the first masks: too few sparse points on the object"}
             out.append("<li>" + (f"automatic masks: every pixel that sees past the object's footprint "
                                  f"({source.get(footprint, footprint)}) is background, the table in front of it too."

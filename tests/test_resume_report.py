@@ -96,3 +96,28 @@ def _screenshot_shows_model(chromium, page, tmp_path):
     inner = img[y0:y1, x0:x1]
     not_bg = np.any(np.abs(inner.astype(int) - 238) > 10, axis=2).mean()
     assert not_bg > 0.01, f"only {not_bg:.4f} of the viewer is not background"
+
+
+def test_report_says_where_the_masks_footprint_came_from(tmp_path):
+    """The report's sentence for each value of the masks' ``footprint`` stamp: the source in words ("sparse points",
+    "masks' hull", and a stop-25 stamp's True, when points were the only source), the fallback for False, nothing
+    for None; never the raw value."""
+    import json
+
+    import numpy as np
+
+    from pipeline.report import capture_section
+    from pipeline.workspace import Workspace
+
+    ws = Workspace(tmp_path)
+    np.savez(ws.cameras, ground_plane=np.array([0.0, 0.0, 1.0, 0.5]))
+    ws.stages.mkdir(parents=True, exist_ok=True)
+    said = {}
+    for value in ("sparse points", "masks' hull", True, False, None):
+        (ws.stages / "masks.json").write_text(json.dumps({"footprint": value}))
+        said[value] = capture_section(ws, {})
+    assert "its sparse points on the plane, widened" in said["sparse points"] and said[True] == said["sparse points"]
+    assert "the visual hull of the first masks" in said["masks' hull"]
+    assert "no footprint of the object could be built" in said[False]
+    assert "automatic masks" not in said[None]
+    assert not any("(True)" in s or "masks' hull)" in s for s in said.values())
