@@ -37,7 +37,7 @@ import torch
 
 from dvr.cameras import Cameras, load_cameras, plane_height, project_points, sphere_bounds, to_normalized
 from dvr.data import list_images, pad_stack, read_mask
-from dvr.hull import grid_points, hull_logits
+from dvr.hull import grid_points, hull_logits, mask_lookup
 
 from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
 from .raycast import mesh_intersector, pixel_center_rays
@@ -271,15 +271,14 @@ def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig):
     views carve the space above it. The hull bounds the object already, so the prism is one hull cell wider than
     those cells and ends one cell above the hull's top (sparse points give no top): the floor behind the object,
     seen over it, is background too. None when no cell stands that high."""
-    canvas, sizes = pad_stack([m.astype(np.float32) for m in masks])
-    lg = hull_logits(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res=cfg.hull_res,
-                     min_views=cfg.carve_min_views, ground=cams.ground, sizes=torch.from_numpy(sizes))
-    cells = grid_points(cfg.hull_res)[lg.reshape(-1).cpu() > 0].numpy().astype(np.float64)
-    in_frame = np.zeros(len(cells), np.int32)
-    for P, (w, h) in zip(cams.P, sizes):
-        uv, z = project_points(P, cells)
-        in_frame += (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w) & (uv[:, 1] >= 0) & (uv[:, 1] <= h)
-    cells = cells[in_frame >= FOOTPRINT_IN_FRAME * len(cams)]  # the hull is only carved where the views see
+    canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
+    P = torch.from_numpy(cams.P)
+    lg = hull_logits(P.float(), canvas, res=cfg.hull_res, min_views=cfg.carve_min_views, ground=cams.ground,
+                     sizes=sizes)
+    cells = grid_points(cfg.hull_res, dtype=torch.float64)[lg.reshape(-1).cpu() > 0]
+    _, seen = mask_lookup(cells, P, canvas, sizes)  # in front of the camera and inside its own image
+    # the hull is only carved where the views see
+    cells = cells[seen.sum(0) >= FOOTPRINT_IN_FRAME * len(cams)].numpy()
     height = plane_height(cams.ground, cells)
     tall = height > cfg.footprint_hull_height
     if not tall.any():
