@@ -162,6 +162,20 @@ def test_no_support_through_the_object_itself():
     assert find_support(np.concatenate([_floor(), sills, body + [0, 0, 0.3]]), C, R, target) is not None
 
 
+def _floor_hits(o, d, z=-0.5):
+    """Rays (o, d) against the floor z: whether each meets it in front of its camera, and where (o where not)."""
+    s = (z - o[:, 2]) / np.where(d[:, 2] < 0, d[:, 2], np.nan)  # ray depth to the floor (NaN: never meets it)
+    reached = np.nan_to_num(s, nan=-1.0) > 0
+    return reached, o + np.where(reached, s, 0.0)[:, None] * d
+
+
+def _ring_cameras(C, R, focal=300.0, ground=(0.0, 0.0, 1.0, 0.5)):
+    """Cameras of 320 × 240 at centres C looking along R, the support plane ``ground`` (default z = −0.5)."""
+    t = -np.einsum("nij,nj->ni", R, C)
+    K = np.tile(np.array([[focal, 0, 160], [0, focal, 120], [0, 0, 1]]), (len(C), 1, 1))
+    return Cameras(K, R, t, np.eye(4), np.array(ground))
+
+
 def test_support_in_sphere_marks_the_floor_inside_the_sphere_only():
     """The pixels where the plane-sweep's background evidence is only probable (the floor inside the object's
     sphere, where the object's lowest band and the floor lie within a pixel's parallax): the floor disc round the
@@ -170,19 +184,16 @@ def test_support_in_sphere_marks_the_floor_inside_the_sphere_only():
     from pipeline.raycast import pixel_center_rays
 
     C, R = _ring(height=1.0, target=(0.0, 0.0, 0.0))
-    t = -np.einsum("nij,nj->ni", R, C)
-    K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(C), 1, 1))
-    plane = np.array([0.0, 0.0, 1.0, 0.5])  # z = −0.5: the floor cuts the unit sphere in a disc of radius 0.87
-    cams = Cameras(K, R, t, np.eye(4), plane)
+    cams = _ring_cameras(C, R)  # the floor z = −0.5 cuts the unit sphere in a disc of radius 0.87
+    K = cams.K
     soft = support_in_sphere(cams, 0, 240, 320)
     assert soft.shape == (240, 320) and soft.dtype == bool
     o, d = pixel_center_rays(K[0], R[0], C[0], 320, 240)
-    s = -(o[:, 2] + 0.5) / np.where(d[:, 2] < 0, d[:, 2], np.nan)  # ray depth to the floor (NaN: never meets it)
-    x = o + np.nan_to_num(s)[:, None] * d
-    expect = (np.nan_to_num(s, nan=-1) > 0) & (np.linalg.norm(x, axis=1) < 1.0)
+    reached, x = _floor_hits(o, d)
+    expect = reached & (np.linalg.norm(x, axis=1) < 1.0)
     assert soft.sum() > 1000 and np.array_equal(soft.reshape(-1), expect)
     assert not soft[:100].any()  # the upper part of the picture looks over the floor disc
-    assert not support_in_sphere(Cameras(K, R, t, np.eye(4)), 0, 240, 320).any()
+    assert not support_in_sphere(Cameras(K, R, cams.t, np.eye(4)), 0, 240, 320).any()
 
 
 def _box_on_floor(n=400, half=(0.3, 0.2), top=0.3, floor=-0.5):
@@ -225,9 +236,8 @@ def test_footprint_makes_the_floor_round_the_object_background():
     from pipeline.support import footprint_prism
 
     C, R = _ring(height=1.0, target=(0.0, 0.0, -0.2))
-    t = -np.einsum("nij,nj->ni", R, C)
-    K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(C), 1, 1))
-    cams = Cameras(K, R, t, np.eye(4), np.array([0.0, 0.0, 1.0, 0.5]))
+    cams = _ring_cameras(C, R)
+    K = cams.K
     box = _box_on_floor()
     prism = footprint_prism(box, cams.ground, 0.1, 100)
     sphere_only, tight = object_region(cams, 0, 240, 320), object_region(cams, 0, 240, 320, prism)
@@ -236,9 +246,9 @@ def test_footprint_makes_the_floor_round_the_object_background():
     uv = np.floor(uvw[:, :2] / uvw[:, 2:]).astype(int)  # the pixel each point falls in
     assert tight[uv[:, 1], uv[:, 0]].all()  # the object
     o, d = pixel_center_rays(K[0], R[0], C[0], 320, 240)
-    s = -(o[:, 2] + 0.5) / np.where(d[:, 2] < 0, d[:, 2], np.nan)
-    x = (o + np.nan_to_num(s)[:, None] * d).reshape(240, 320, 3)
-    on_floor = sphere_only & (np.nan_to_num(s, nan=-1).reshape(240, 320) > 0)
+    reached, x = _floor_hits(o, d)
+    x = x.reshape(240, 320, 3)
+    on_floor = sphere_only & reached.reshape(240, 320)
     front = on_floor & (x[..., 0] > 0.45)  # between the camera (x = 3) and the box (x ≤ 0.3): seen, not hidden
     behind = on_floor & (x[..., 0] < -0.45) & (np.abs(x[..., 1]) < 0.1)  # the rays cross the box first
     assert front.sum() > 500 and not tight[front].any() and sphere_only[front].all()
@@ -255,16 +265,14 @@ def _box_and_table_masks(focal=500.0, table_radius=0.55, with_box=True):
 
     C, R = (np.concatenate(x) for x in zip(_ring(height=0.3, target=(0.0, 0.0, -0.2)),
                                              _ring(height=2.5, target=(0.0, 0.0, -0.2))))
-    t = -np.einsum("nij,nj->ni", R, C)
-    K = np.tile(np.array([[focal, 0, 160], [0, focal, 120], [0, 0, 1]]), (len(C), 1, 1))
-    cams = Cameras(K, R, t, np.eye(4), np.array([0.0, 0.0, 1.0, 0.5]))
+    cams = _ring_cameras(C, R, focal)
+    K = cams.K
     box = trimesh.creation.box((0.6, 0.4, 0.8), trimesh.transformations.translation_matrix((0, 0, -0.1)))
     inter, masks = mesh_intersector(box), []
     for i in range(len(C)):
         o, d = pixel_center_rays(K[i], R[i], C[i], 320, 240)
-        s = -(o[:, 2] + 0.5) / np.where(d[:, 2] < 0, d[:, 2], np.nan)
-        x = o + np.nan_to_num(s, nan=-1.0)[:, None] * d
-        table = (np.nan_to_num(s, nan=-1.0) > 0) & (np.hypot(x[:, 0], x[:, 1]) < table_radius)
+        reached, x = _floor_hits(o, d)
+        table = reached & (np.hypot(x[:, 0], x[:, 1]) < table_radius)
         masks.append(((inter.intersects_any(o, d) & with_box) | table).reshape(240, 320))
     return cams, masks, box
 
