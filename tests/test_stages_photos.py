@@ -84,6 +84,37 @@ def test_auto_masks_iou(photo_ws):
     assert (ws / "masks" / "overlays" / "000000.jpg").exists() and (ws / "masks" / "confidence.json").exists()
 
 
+def test_mask_seeds_skip_observations_off_their_point(photo_ws, tmp_path):
+    """A wrong match makes a view "observe" a point its ray does not meet (a backdrop point behind the object); the
+    masks' seeds keep only observations that reproject within ``seed_max_error`` × the mean error: the moved
+    observations go, nearly all others stay, and 0 keeps every one."""
+    import pycolmap
+
+    from pipeline.masks import _tracks
+    from pipeline.workspace import Workspace
+
+    _, ws = photo_ws
+    rec = pycolmap.Reconstruction(ws / "sfm" / "undistorted" / "sparse")
+    names = sorted(rec.image(i).name.rsplit(".", 1)[0] for i in rec.reg_image_ids())
+    moved = {}
+    for i in sorted(rec.reg_image_ids())[:4]:  # one observation per view 6 px off its point
+        im = rec.image(i)
+        p = next(p for p in im.points2D if p.has_point3D())
+        p.xy = p.xy + np.array([6.0, 0.0])
+        moved[im.name.rsplit(".", 1)[0]] = p.point3D_id
+    copy = Workspace(tmp_path / "ws")
+    (copy.root / "sfm" / "undistorted" / "sparse").mkdir(parents=True)
+    rec.write(copy.root / "sfm" / "undistorted" / "sparse")
+    ids = list(rec.points3D.keys())
+    _, every = _tracks(copy, names, 0.0)
+    _, kept = _tracks(copy, names, 1.0)
+    for name, pid in moved.items():
+        assert ids.index(pid) in every[name] and ids.index(pid) not in kept[name]
+    total = sum(len(v) for v in every.values())
+    assert total == rec.compute_num_observations()
+    assert sum(len(v) for v in kept.values()) >= 0.5 * total
+
+
 def test_sparse_depth_matches_gt(photo_ws):
     syn, ws = photo_ws
     est, gt = load_cameras(ws / "cameras.npz"), load_cameras(syn / "cameras.npz")
@@ -363,7 +394,8 @@ def test_final_adjustment_off_or_too_few_points_keeps_the_mapped_model():
 
 def test_final_adjustment_through_the_cameras_stage(photo_ws, tmp_path):
     """``--cameras.final-passes 3`` on the torus photos: the stage runs the passes, says so in its stamp and the
-    report, and the poses stay as good as the plain run's (the op's gain is tested above on a known model)."""
+    report, and the poses stay as good as the plain run's (the op's gain is tested above on a known model); with
+    ``--cameras.final-retriangulate`` the points are triangulated afresh at the adjusted poses."""
     import json
 
     from pipeline.report import capture_section
@@ -371,9 +403,17 @@ def test_final_adjustment_through_the_cameras_stage(photo_ws, tmp_path):
 
     syn, plain = photo_ws
     ws = tmp_path / "final"
-    assert main(["cameras", str(ws), "--images", str(syn / "images"), "--cameras.final-passes", "3"]) == 0
+    assert main(["cameras", str(ws), "--images", str(syn / "images"), "--cameras.final-passes", "3",
+                 "--cameras.final-retriangulate"]) == 0
     stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
     assert stamp["final_adjustment"][0].startswith("final adjustment: 3 passes kept")
+    # the points re-triangulated at the adjusted poses: the sparse depth keeps the observations the passes dropped
+    import pycolmap
+
+    kept = {name: pycolmap.Reconstruction(w / "sfm" / "sparse" / "best").compute_num_observations()
+            for name, w in (("plain", plain), ("final", ws))}
+    print(kept, stamp["final_adjustment"])
+    assert "re-triangulated" in stamp["final_adjustment"][1] and kept["final"] >= 0.95 * kept["plain"]
     assert "Final adjustment: 3 passes kept" in capture_section(Workspace(ws), stamp)
     assert json.loads((plain / ".stages" / "cameras.json").read_text())["final_adjustment"] == []  # off by default
     gt = load_cameras(syn / "cameras.npz")
