@@ -147,15 +147,13 @@ def _tracks(ws: Workspace, names: list[str], max_error_ratio: float = 0.0):
         stem = im.name.rsplit(".", 1)[0]
         if stem not in obs:
             continue
-        seen = [(index[p.point3D_id], p.xy) for p in im.points2D if p.has_point3D()]
-        if not seen:
-            continue
-        k = np.array([s[0] for s in seen])
-        if np.isfinite(limit):  # the undistorted model is a pinhole: K (R X + t)
+        seen = [p for p in im.points2D if p.has_point3D()]
+        k = np.array([index[p.point3D_id] for p in seen], int)
+        if len(k) and np.isfinite(limit):  # the undistorted model is a pinhole: K (R X + t)
             M = np.asarray(im.cam_from_world().matrix())
             x = rec.camera(im.camera_id).calibration_matrix() @ (M[:, :3] @ xyz[k].T + M[:, 3:4])
             z = np.where(x[2] > 1e-12, x[2], np.nan)
-            err = np.hypot(x[0] / z - [s[1][0] for s in seen], x[1] / z - [s[1][1] for s in seen])
+            err = np.linalg.norm(x[:2] / z - np.array([p.xy for p in seen]).T, axis=0)
             k = k[err <= limit]  # NaN (behind the camera) fails too
         obs[stem] = k.tolist()
     return xyz, obs
