@@ -24,23 +24,19 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def _project(K: np.ndarray, M: np.ndarray, X: np.ndarray) -> np.ndarray:
-    x = K @ (M[:, :3] @ X.T + M[:, 3:4])
-    return (x[:2] / x[2]).T
-
-
 def object_px(rec, gt_pixels: dict[str, np.ndarray], gt_centres: dict[str, np.ndarray], points: np.ndarray) -> dict:
     """Per registered view of ``rec`` (pycolmap model) named in ``gt_pixels`` (stem → (N, 2) true projections of
     ``points``): the mean pixel distance of SfM's projections of ``points`` after the best similarity."""
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
+    from dvr.cameras import project_points
     from dvr.metrics import umeyama
 
     ims = sorted((rec.image(i) for i in rec.reg_image_ids()), key=lambda im: im.name)
     names = [im.name.rsplit(".", 1)[0] for im in ims]
     M = np.stack([np.asarray(im.cam_from_world().matrix()) for im in ims])
-    Ks = [rec.camera(im.camera_id).calibration_matrix() for im in ims]
+    Ps = [rec.camera(im.camera_id).calibration_matrix() @ m for im, m in zip(ims, M)]
     centres = -np.einsum("nji,nj->ni", M[:, :, :3], M[:, :, 3])
     s, R, t = umeyama(np.stack([gt_centres[n] for n in names]), centres)
 
@@ -50,18 +46,18 @@ def object_px(rec, gt_pixels: dict[str, np.ndarray], gt_centres: dict[str, np.nd
 
     def residuals(z):
         Q = moved(z)
-        return np.concatenate([(_project(K, m, Q) - gt_pixels[n]).ravel() for K, m, n in zip(Ks, M, names)])
+        return np.concatenate([(project_points(P, Q)[0] - gt_pixels[n]).ravel() for P, n in zip(Ps, names)])
 
     z = least_squares(residuals, np.zeros(7), x_scale=np.full(7, 1e-3)).x
     Q = moved(z)
-    return {n: float(np.linalg.norm(_project(K, m, Q) - gt_pixels[n], axis=1).mean()) for K, m, n in zip(Ks, M, names)}
+    return {n: float(np.linalg.norm(project_points(P, Q)[0] - gt_pixels[n], axis=1).mean()) for P, n in zip(Ps, names)}
 
 
 def main() -> None:
     import pycolmap
     import trimesh
 
-    from dvr.cameras import load_cameras
+    from dvr.cameras import load_cameras, project_points
     from pipeline.sfm import refine_model
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -76,8 +72,8 @@ def main() -> None:
              **{f"heldout_{i:06d}": (held, i) for i in range(len(held))}}
     gt_pixels, gt_centres = {}, {}
     for name, (c, i) in truth.items():
-        gt_pixels[name] = _project(c.K[i][:3, :3], np.concatenate([c.R[i], (-c.R[i] @ c.sfm_centers[i])[:, None]], 1),
-                                   points)
+        pose = np.concatenate([c.R[i], (-c.R[i] @ c.sfm_centers[i])[:, None]], 1)
+        gt_pixels[name] = project_points(c.K[i][:3, :3] @ pose, points)[0]
         gt_centres[name] = c.sfm_centers[i]
     mapped = pycolmap.Reconstruction(a.ws / "sfm" / "sparse" / "best")
     for label, passes in (("as mapped", 0), (f"{a.passes} passes", a.passes)):

@@ -149,12 +149,11 @@ def _tracks(ws: Workspace, names: list[str], max_error_ratio: float = 0.0):
             continue
         seen = [p for p in im.points2D if p.has_point3D()]
         k = np.array([index[p.point3D_id] for p in seen], int)
-        if len(k) and np.isfinite(limit):  # the undistorted model is a pinhole: K (R X + t)
-            M = np.asarray(im.cam_from_world().matrix())
-            x = rec.camera(im.camera_id).calibration_matrix() @ (M[:, :3] @ xyz[k].T + M[:, 3:4])
-            z = np.where(x[2] > 1e-12, x[2], np.nan)
-            err = np.linalg.norm(x[:2] / z - np.array([p.xy for p in seen]).T, axis=0)
-            k = k[err <= limit]  # NaN (behind the camera) fails too
+        if len(k) and np.isfinite(limit):  # the undistorted model is a pinhole: K [R | t]
+            P = rec.camera(im.camera_id).calibration_matrix() @ np.asarray(im.cam_from_world().matrix())
+            uv, z = project_points(P, xyz[k])
+            err = np.linalg.norm(uv - np.array([p.xy for p in seen]), axis=1)
+            k = k[(z > 1e-12) & (err <= limit)]
         obs[stem] = k.tolist()
     return xyz, obs
 

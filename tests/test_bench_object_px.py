@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from bench.object_px import _project, object_px
+from bench.object_px import object_px
+from dvr.cameras import project_points
 
 
 def _model():
@@ -24,7 +25,7 @@ def _truth(rec):
         im = rec.image(i)
         M = np.asarray(im.cam_from_world().matrix())
         name = im.name.rsplit(".", 1)[0]
-        pixels[name] = _project(rec.camera(im.camera_id).calibration_matrix(), M, points)
+        pixels[name] = project_points(rec.camera(im.camera_id).calibration_matrix() @ M, points)[0]
         centres[name] = -M[:, :3].T @ M[:, 3]
     return points, pixels, centres
 
