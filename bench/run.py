@@ -3,6 +3,7 @@ on the real DTU scan24 photos; and the cameras stage on a matrix of capture cond
 
     python bench/run.py --quick      # ≤ 10 min on 2 cores: fast + default on the cow on its floor, GT cameras
     python bench/run.py --readme     # the full set (≈ 98 min on 2 cores), tables + plot into README.md
+    python bench/run.py --photos --update bench/results/<full>.json --readme   # only the rows from photos
 
 The main synthetic scenes stand on a surface, as real objects do: the textured cow on a wooden floor, a weakly
 textured jar on a blocky floor, a flat book on a stone-like table top; the cow floating in front of a backdrop is
@@ -196,12 +197,38 @@ def run_all(specs: list[dict], resume: bool) -> list[dict]:
     return results
 
 
+def spec_key(r: dict) -> tuple:
+    """What identifies a bench row: its spec (the fields :func:`plan` sets)."""
+    return tuple(r.get(k) for k in ("kind", "condition", "scene", "cameras", "preset", "knob", "ablation"))
+
+
+def merged(path: Path, new: list[dict]) -> list[dict]:
+    """The rows of the results JSON ``path`` with those of ``new`` put in their place (same spec); a failed new
+    row keeps the old one and says so."""
+    rows = json.loads(path.read_text())["results"]
+    index = {spec_key(r): k for k, r in enumerate(rows)}
+    for r in new:
+        k = index.get(spec_key(r))
+        if r.get("error") is not None:
+            print(f"bench: {spec_key(r)} failed ({r['error']}); its earlier row is kept", file=sys.stderr)
+        elif k is None:
+            rows.append(r)
+        else:
+            rows[k] = r
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fast + default on the cow with GT cameras (≤ 10 min)")
     ap.add_argument("--readme", action="store_true", help="write the tables and plot into README.md")
     ap.add_argument("--only", type=str, default=None,
                     help="run only the specs whose scene (or cameras-table condition) contains this (debugging)")
+    ap.add_argument("--photos", action="store_true",
+                    help="run only the rows from photos (SfM cameras and automatic masks; with --update)")
+    ap.add_argument("--update", type=Path, default=None,
+                    help="a full bench's results JSON: rerun the selected rows and replace them there (the others "
+                         "kept as they are); tables, plot and README (with --readme) from the merged set")
     ap.add_argument("--from", dest="from_json", type=Path, default=None,
                     help="redo the tables, plot and README section from a results JSON (no runs)")
     ap.add_argument("--resume", action="store_true",
@@ -216,13 +243,17 @@ def main() -> None:
     if a.one:
         run_child(json.loads(a.one))
         return
-    specs = [s for s in plan(a.quick) if a.only is None or a.only in s["scene"] or a.only in s.get("condition", "")]
+    specs = [s for s in plan(a.quick) if (a.only is None or a.only in s["scene"] or a.only in s.get("condition", ""))
+             and (not a.photos or s.get("cameras") == "sfm")]
     results = run_all(specs, a.resume)
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)
     stem = out / f"{datetime.date.today().isoformat()}-{platform.node() or 'machine'}{'-quick' if a.quick else ''}"
-    total = sum(r.get("wall_s", 0.0) for r in results)  # the runs' own time, also when resumed
     mach = machine()
+    if a.update:
+        results, stem = merged(a.update, results), a.update.with_suffix("")
+        mach = json.loads(a.update.read_text())["machine"]
+    total = sum(r.get("wall_s", 0.0) for r in results)  # the runs' own time, also when resumed
     stem.with_suffix(".json").write_text(json.dumps({"machine": mach, "bench_seconds": round(total, 1),
                                                      "results": results}, indent=1))
     write(results, mach, total, stem, readme)

@@ -1,0 +1,34 @@
+"""bench/run.py: rows of a partial rerun merged into a full bench's results."""
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.run import merged  # noqa: E402
+
+
+def _write(tmp_path, rows):
+    path = tmp_path / "full.json"
+    path.write_text(json.dumps({"machine": {}, "bench_seconds": 0, "results": rows}))
+    return path
+
+
+def test_merged_replaces_the_rerun_rows_and_keeps_the_others(tmp_path):
+    gt = {"scene": "cow", "cameras": "gt", "preset": "default", "psnr": 27.0}
+    photos = {"scene": "cow", "cameras": "sfm", "preset": "default", "psnr": 24.0}
+    knob = {"scene": "cow", "cameras": "sfm", "preset": "default", "knob": "final adjustment", "ablation": True,
+            "psnr": 25.0}
+    path = _write(tmp_path, [gt, photos, knob])
+    rows = merged(path, [{**photos, "psnr": 24.5}])
+    assert [r["psnr"] for r in rows] == [27.0, 24.5, 25.0]
+
+
+def test_merged_keeps_the_old_row_when_the_rerun_failed_and_appends_new_specs(tmp_path):
+    photos = {"scene": "cow", "cameras": "sfm", "preset": "default", "psnr": 24.0}
+    path = _write(tmp_path, [photos])
+    new = {"scene": "jar", "cameras": "sfm", "preset": "default", "psnr": 32.0}
+    rows = merged(path, [{**photos, "error": "boom"}, new])
+    assert [r["psnr"] for r in rows] == [24.0, 32.0]
+
