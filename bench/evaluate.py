@@ -147,11 +147,12 @@ def _read_mask(path: Path) -> np.ndarray:
     return read_mask(path) > 0
 
 
-def cameras_options(options: list[str]) -> list[str]:
-    """The options of a knob that set the cameras stage (``--cameras.x v``), in the CLI's spelling."""
+def photo_stage_options(options: list[str]) -> list[str]:
+    """The options of a knob that set the stages run on the whole photo folder before training (``--cameras.x v``,
+    ``--masks.x v``, ``--depth.x v``), in the CLI's spelling."""
     out = []
     for i, o in enumerate(options):
-        if o.startswith("--cameras."):
+        if o.startswith(("--cameras.", "--masks.", "--depth.")):
             out += [o] + ([options[i + 1]] if i + 1 < len(options) and not options[i + 1].startswith("--") else [])
     return out
 
@@ -191,7 +192,7 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
             for i, p in enumerate(held)]))
     else:
         full = work / "all"
-        stages(("cameras", "masks", "depth"), full, config(spec["preset"], cameras_options(cli_over)),
+        stages(("cameras", "masks", "depth"), full, config(spec["preset"], photo_stage_options(cli_over)),
                images=photos_folder(syn, work / "photos"))
         from dvr.data import list_images
 
@@ -300,7 +301,7 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     from pipeline.workspace import Workspace
 
     options = (knobs or {}).get(spec.get("knob"), ([], {}))[0]
-    cams_opts = cameras_options(options)  # a knob of the cameras stage gets its own SfM run, else the shared one
+    cams_opts = photo_stage_options(options)  # a knob of those stages gets its own SfM run, else the shared one
     full = RUNS / ("dtu_all" + ("-" + "_".join(o.strip("-").replace(".", "_") for o in cams_opts) if cams_opts else ""))
     if not (full / ".stages" / "depth.json").exists():
         shutil.rmtree(full, ignore_errors=True)

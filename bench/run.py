@@ -3,7 +3,7 @@ on the real DTU scan24 photos; and the cameras stage on a matrix of capture cond
 
     python bench/run.py --quick      # ≤ 10 min on 2 cores: fast + default on the cow on its floor, GT cameras
     python bench/run.py --readme     # the full set (≈ 98 min on 2 cores), tables + plot into README.md
-    python bench/run.py --photos --update bench/results/<full>.json --readme   # only the rows from photos
+    python bench/run.py --photos --update bench/results/<full>.json --readme   # only the rows that run SfM
 
 The main synthetic scenes stand on a surface, as real objects do: the textured cow on a wooden floor, a weakly
 textured jar on a blocky floor, a flat book on a stone-like table top; the cow floating in front of a backdrop is
@@ -225,7 +225,8 @@ def main() -> None:
     ap.add_argument("--only", type=str, default=None,
                     help="run only the specs whose scene (or cameras-table condition) contains this (debugging)")
     ap.add_argument("--photos", action="store_true",
-                    help="run only the rows from photos (SfM cameras and automatic masks; with --update)")
+                    help="run only the rows that run SfM: from photos (SfM cameras, automatic masks) and the "
+                         "cameras table (with --update)")
     ap.add_argument("--update", type=Path, default=None,
                     help="a full bench's results JSON: rerun the selected rows and replace them there (the others "
                          "kept as they are); tables, plot and README (with --readme) from the merged set")
@@ -244,7 +245,7 @@ def main() -> None:
         run_child(json.loads(a.one))
         return
     specs = [s for s in plan(a.quick) if (a.only is None or a.only in s["scene"] or a.only in s.get("condition", ""))
-             and (not a.photos or s.get("cameras") == "sfm")]
+             and (not a.photos or s.get("cameras") == "sfm" or s.get("kind") == "cameras")]
     results = run_all(specs, a.resume)
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)

@@ -256,9 +256,19 @@ def seed_labels(cams: Cameras, i: int, h: int, w: int, pts_n: np.ndarray | None,
 
 
 @torch.no_grad()
-def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int) -> list[np.ndarray]:
-    """Render the visual hull of ``masks`` (one bool array per view, each its own size; carving with
-    ``min_views``; nothing below the support plane) into every view: one bool array per view.
+def visual_hull(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int) -> torch.Tensor:
+    """:func:`dvr.hull.hull_logits` of ``masks`` (one bool array per view, each its own size; carving with
+    ``min_views``; nothing below the support plane)."""
+    canvas, sizes = pad_stack([m.astype(np.float32) for m in masks])
+    return hull_logits(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res=res, min_views=min_views,
+                       slope_cells=1.0, ground=cams.ground, sizes=torch.from_numpy(sizes))
+
+
+@torch.no_grad()
+def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
+                     logits: torch.Tensor | None = None) -> list[np.ndarray]:
+    """Render the visual hull of ``masks`` (:func:`visual_hull`; its ``logits`` when already built) into every
+    view: one bool array per view.
 
     The hull's logit volume becomes a mesh (marching cubes) and every pixel centre's ray is cast against it
     (Embree through trimesh) — 40× faster than marching the volume along every ray.
@@ -266,9 +276,8 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     import trimesh
     from skimage import measure
 
-    canvas, sizes = pad_stack([m.astype(np.float32) for m in masks])
-    lg = hull_logits(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res=res, min_views=min_views,
-                     slope_cells=1.0, ground=cams.ground, sizes=torch.from_numpy(sizes)).cpu().numpy()
+    _, sizes = pad_stack([m.astype(np.float32) for m in masks])
+    lg = (visual_hull(masks, cams, res, min_views) if logits is None else logits).cpu().numpy()
     if lg.max() <= 0 or lg.min() > 0:
         return [np.full(m.shape, lg.min() > 0) for m in masks]
     v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
@@ -280,8 +289,9 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     return out
 
 
-def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig):
-    """:func:`pipeline.support.footprint_prism` of the visual hull of ``masks`` (carving with ``carve_min_views``):
+def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, logits: torch.Tensor | None = None):
+    """:func:`pipeline.support.footprint_prism` of the visual hull of ``masks`` (carving with ``carve_min_views``;
+    its :func:`visual_hull` ``logits`` when already built):
     the hull's grid cells more than ``footprint_hull_height`` above the support plane stand for the object's
     points, where at least :data:`FOOTPRINT_IN_FRAME` of the views have them in frame (elsewhere, near the
     sphere's edge, few views carve). A ring of table that every mask took lies flat on the plane, and the low
@@ -290,8 +300,7 @@ def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig):
     seen over it, is background too. None when no cell stands that high."""
     canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
     P = torch.from_numpy(cams.P)
-    lg = hull_logits(P.float(), canvas, res=cfg.hull_res, min_views=cfg.carve_min_views, ground=cams.ground,
-                     sizes=sizes)
+    lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views) if logits is None else logits
     cells = grid_points(cfg.hull_res, dtype=torch.float64)[lg.reshape(-1).cpu() > 0]
     _, seen = mask_lookup(cells, P, canvas, sizes)  # in front of the camera and inside its own image
     # the hull is only carved where the views see
@@ -357,8 +366,10 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray],
             lab[bg & support_in_sphere(cams, i, h, w)] = cv2.GC_PR_BGD
         seeds.append(lab)
     first = [remove_specks(m, cfg.speck_fraction) for m in grabcut_all(imgs, seeds, cfg.grabcut_iters)]
+    first_hull = None  # built once when the footprint and the first vote both need it
     if used is False and cfg.footprint_hull_height > 0:  # too few points: the footprint of the first masks' hull
-        footprint = hull_footprint(first, cams, cfg)
+        first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views)
+        footprint = hull_footprint(first, cams, cfg, first_hull)
         used = footprint is not None and "masks' hull"
         print("masks: " + ("the support plane beyond that footprint is background" if used
                            else "the first masks' hull stands nowhere above the plane: no footprint"))
@@ -366,9 +377,9 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray],
             seeds[i][~object_region(cams, i, img.shape[0], img.shape[1], footprint)] = cv2.GC_BGD
     k = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
     current = first
-    for _ in range(max(1, cfg.vote_rounds)):
+    for vote in range(max(1, cfg.vote_rounds)):
         # vote: the hull of the current masks (carving needs carve_min_views) is an upper bound in every view
-        sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views)
+        sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views, first_hull if vote == 0 else None)
         labs = []
         for i in range(len(imgs)):
             # outside the silhouette: background (an object seed there is outvoted by the views that carved that

@@ -85,9 +85,9 @@ def ladder(start: str, stop: str, max_features: int = 8192) -> list[Rung]:
 
 # ----------------------------------------------------------------------------- one rung (child process)
 def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera_model: str,
-             per_image: bool = False) -> None:
+             per_image: bool = False, threads: int = -1) -> None:
     """The rung's features into ``db``: one shared camera per group of images (a phone's portrait and landscape
-    shots: two), or ``per_image`` a camera each."""
+    shots: two), or ``per_image`` a camera each; on ``threads`` threads (-1: all cores)."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
@@ -96,33 +96,37 @@ def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera
     ext.sift.max_num_features = rung.max_features
     ext.sift.domain_size_pooling = rung.dsp
     ext.sift.estimate_affine_shape = rung.dsp
+    ext.num_threads = threads
     mode = pycolmap.CameraMode.PER_IMAGE if per_image else pycolmap.CameraMode.SINGLE
     for names in groups:
         pycolmap.extract_features(db, images, image_names=names, camera_mode=mode, reader_options=reader,
                                   extraction_options=ext)
 
 
-def _match(db: Path, n_images: int, rung: Rung, matching: str) -> None:
+def _match(db: Path, n_images: int, rung: Rung, matching: str, threads: int = -1) -> None:
     import pycolmap
 
     opts = pycolmap.FeatureMatchingOptions()
     opts.guided_matching = rung.guided
+    opts.num_threads = threads
     if matching == "exhaustive" or (matching == "auto" and n_images <= 80):
         pycolmap.match_exhaustive(db, matching_options=opts)
     else:
         pycolmap.match_sequential(db, matching_options=opts)
 
 
-def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "") -> dict:
+def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "", threads: int = -1) -> dict:
     """Map with the rung's mapper; ``base``: a model folder to continue from (the ``extend`` mapper)."""
     import pycolmap
 
     if rung.mapper == "global":
         opts = pycolmap.GlobalPipelineOptions()
         opts.random_seed = seed
+        opts.num_threads = threads
         return pycolmap.global_mapping(db, images, out, opts)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = seed
+    opts.num_threads = threads
     if rung.relaxed:
         opts.min_model_size = 3
         opts.mapper.init_min_num_inliers = 50
@@ -133,40 +137,42 @@ def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "
 
 
 def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camera_model: str, matching: str,
-              seed: int, base: list[str] | None = None) -> None:
+              seed: int, base: list[str] | None = None, threads: int = -1) -> None:
     """Child process: features (reused when another rung made them), matches (likewise), mapping; the largest
     model is written to ``work/<rung>/model`` and its timings to ``work/<rung>/result.json``. ``base``: (model
     folder, its database) to continue from instead (the ``extend`` mapper)."""
     r = Rung(**rung)
     work_p, images_p = Path(work), Path(images)
     if base is not None:
-        _map_rung(work_p, images_p, r, Path(base[1]), seed, base[0], {"features": 0.0, "matching": 0.0})
+        _map_rung(work_p, images_p, r, Path(base[1]), seed, base[0], {"features": 0.0, "matching": 0.0}, threads)
         return
     t0 = time.perf_counter()
     feats = work_p / f"features-{r.features_key}.db"
     if not feats.exists():
         tmp = feats.with_suffix(".tmp")
         tmp.unlink(missing_ok=True)
-        _extract(tmp, images_p, groups, r, camera_model)
+        _extract(tmp, images_p, groups, r, camera_model, threads=threads)
         tmp.rename(feats)
     t1 = time.perf_counter()
     db = work_p / f"matches-{r.matches_key}.db"
     if not db.exists():
         tmp = db.with_suffix(".tmp")
         shutil.copy(feats, tmp)
-        _match(tmp, sum(len(g) for g in groups), r, matching)
+        _match(tmp, sum(len(g) for g in groups), r, matching, threads)
         tmp.rename(db)
     t2 = time.perf_counter()
-    _map_rung(work_p, images_p, r, db, seed, "", {"features": round(t1 - t0, 2), "matching": round(t2 - t1, 2)})
+    _map_rung(work_p, images_p, r, db, seed, "", {"features": round(t1 - t0, 2), "matching": round(t2 - t1, 2)},
+              threads)
 
 
-def _map_rung(work: Path, images: Path, r: Rung, db: Path, seed: int, base: str, seconds: dict) -> None:
+def _map_rung(work: Path, images: Path, r: Rung, db: Path, seed: int, base: str, seconds: dict,
+              threads: int = -1) -> None:
     """Mapping of one rung; the largest model goes to ``work/<rung>/model``, the timings to ``result.json``."""
     t0 = time.perf_counter()
     out = work / r.name
     shutil.rmtree(out, ignore_errors=True)
     (out / "models").mkdir(parents=True)
-    recs = _map(db, images, out / "models", r, seed, base)
+    recs = _map(db, images, out / "models", r, seed, base, threads)
     best = max(recs.values(), key=lambda rec: rec.num_reg_images()) if recs else None
     if best is not None:
         (out / "model").mkdir()
@@ -176,14 +182,15 @@ def _map_rung(work: Path, images: Path, r: Rung, db: Path, seed: int, base: str,
 
 
 def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, camera_model: str, matching: str,
-             seed: int = 0, base: tuple[Path, Path] | None = None):
+             seed: int = 0, base: tuple[Path, Path] | None = None, threads: int = -1):
     """Run one rung in a child process (``python -m pipeline.sfm``; COLMAP's log goes to ``work/<rung>.log``);
-    ``base``: (model folder, its database) for the ``extend`` mapper to continue from. Returns (model or None,
-    database path, seconds per step, error or None)."""
+    ``base``: (model folder, its database) for the ``extend`` mapper to continue from; ``threads``: COLMAP's
+    threads (-1: all cores; 1: the same photos give the same model). Returns (model or None, database path,
+    seconds per step, error or None)."""
     import pycolmap
 
     args = [str(work), str(images), groups, asdict(rung), camera_model, matching, seed,
-            None if base is None else [str(base[0]), str(base[1])]]
+            None if base is None else [str(base[0]), str(base[1])], threads]
     log = work / f"{rung.name}.log"
     with open(log, "w") as f:
         p = subprocess.run([sys.executable, "-m", "pipeline.sfm", json.dumps(args)], stdout=f, stderr=subprocess.STDOUT,
@@ -200,7 +207,7 @@ def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, came
 
 # ----------------------------------------------------------------------------- given cameras
 def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, Rs: np.ndarray, ts: np.ndarray,
-                   matching: str, max_features: int):
+                   matching: str, max_features: int, threads: int = -1):
     """Sparse points of photos whose cameras are given (``images/<name>.png``; intrinsics for those pixels, world →
     camera poses): the default rung's SIFT features and matches, then COLMAP's point triangulator at the given
     poses (no mapping, no pose refinement). Returns the model; its database is ``work/given.db``."""
@@ -210,8 +217,8 @@ def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, R
     db = work / "given.db"
     db.unlink(missing_ok=True)
     rung = ladder("default", "default", max_features)[0]
-    _extract(db, images, [[f"{n}.png" for n in names]], rung, "PINHOLE", per_image=True)
-    _match(db, len(names), rung, matching)
+    _extract(db, images, [[f"{n}.png" for n in names]], rung, "PINHOLE", per_image=True, threads=threads)
+    _match(db, len(names), rung, matching, threads)
     rec = pycolmap.Reconstruction()
     database = pycolmap.Database.open(str(db))
     try:

@@ -425,6 +425,41 @@ def test_final_adjustment_through_the_cameras_stage(photo_ws, tmp_path):
     assert errs["final"] <= 1.1 * errs["plain"]
 
 
+def test_the_same_photos_give_the_same_cameras(photo_ws, tmp_path):
+    """COLMAP on one thread (``cameras.deterministic``, the default): a second run of the cameras stage on the
+    same photos gives the first run's cameras to the last bit (on all cores they differ by ~1e-3)."""
+    syn, ws = photo_ws
+    again = tmp_path / "again"
+    assert main(["cameras", str(again), "--images", str(syn / "images")]) == 0
+    first, second = np.load(ws / "cameras.npz"), np.load(again / "cameras.npz")
+    assert first.files == second.files
+    for key in first.files:
+        np.testing.assert_array_equal(second[key], first[key], err_msg=key)
+
+
+def test_a_saved_mapping_gives_the_cameras_of_the_run_that_mapped_it(photo_ws, tmp_path, monkeypatch):
+    """``bench/pair.py``'s stand-in for the SfM ladder (:func:`pipeline.cameras.map_photos`) returns a workspace's
+    saved model; the rest of the cameras stage (:func:`pipeline.cameras.finish_model`, the frame, the support
+    plane) then gives that workspace's cameras again, without mapping, and the final passes change them."""
+    import pipeline.cameras as cameras_stage
+    from bench.pair import from_mapping
+
+    def no_mapping(*args):
+        raise AssertionError("mapped again")
+
+    syn, plain = photo_ws
+    monkeypatch.setattr(cameras_stage, "run_rung", no_mapping)
+    monkeypatch.setattr(cameras_stage, "map_photos", from_mapping(plain))
+    again, passes = tmp_path / "again", tmp_path / "passes"
+    assert main(["cameras", str(again), "--images", str(syn / "images")]) == 0
+    assert main(["cameras", str(passes), "--images", str(syn / "images"), "--cameras.final-passes", "3"]) == 0
+    a, b, c = (np.load(w / "cameras.npz") for w in (plain, again, passes))
+    assert a.files == b.files
+    for key in a.files:
+        np.testing.assert_allclose(b[key], a[key], rtol=0, atol=1e-9, err_msg=key)
+    assert not np.allclose(c["world_mat_0"], a["world_mat_0"], rtol=0, atol=1e-9)
+
+
 def test_floating_object_has_no_support_plane(photo_ws):
     """The torus floats in front of its backdrop: no plane carries it, and every stage behaves as before."""
     import json
