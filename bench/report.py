@@ -213,7 +213,7 @@ def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
     pairs += [(selection, what, base.get(("default", *key)), by.get(("default", *key, "view selection")))
               for what, key in (("the cow, GT cameras", ("cow", "gt")), ("the cow from photos", ("cow", "sfm")),
                                 ("DTU scan24", ("dtu", "sfm")))]
-    final = "final SfM adjustment (`--cameras.final-passes 3`, each run its own SfM)"
+    final = "final SfM adjustment (`--cameras.final-passes 3`, on the same SfM mapping: COLMAP runs on one thread)"
     pairs += [(final, f"{what} from photos" + ("" if p == "default" else f" (`{p}` preset)"),
                base.get((p, scene, "sfm")), by.get((p, scene, "sfm", "final adjustment")))
               for what, scene, p in (("the cow", "cow", "default"), ("the cow", "cow", "balanced"),
