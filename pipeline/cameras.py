@@ -87,12 +87,14 @@ class CamerasConfig:
     """Passes of a final bundle adjustment after mapping (0: off, the model as mapped; 3 to use it): each drops the
     observations more than ``final_error_ratio`` × the mean reprojection error off and re-adjusts with a robust
     (Cauchy) loss. Where the camera model is exact it halves the pose error (a rendered cow: rotation 0.057° →
-    0.030°). One SfM mapping each, with and without the passes (held-out PSNR, default preset): the cow
-    +0.4 dB (`balanced` +0.6), the jar −0.2, the book −0.4 (they take a quarter to half of its sparse depths with
-    them; see ``final_retriangulate``). Degrees mislead: the jar's rotation error falls (0.070 → 0.051°) while its
-    held-out views' picture of the object moves further from the truth (0.13 → 0.19 px, ``bench/object_px.py``),
-    and held-out photos are rendered at the poses SfM gave them. On real photos the error tail is partly model
-    misfit (DTU's principal point is off-centre). Off by default."""
+    0.030°). One SfM mapping each, with and without the passes (held-out PSNR, default preset; stop 27's saved
+    mappings, then the bench's one-thread mappings of stop 28): the cow +0.4 / +0.54 dB (`balanced` +0.6 / +0.72),
+    the floating cow +6.0 / +8.1, the jar −0.2 / −1.36, the book −0.4 / −0.74, DTU −1.05 (stop 28) (the passes
+    take a quarter to half of the book's sparse depths with them; see ``final_retriangulate``). Degrees mislead:
+    the jar's rotation error falls (0.070 → 0.051°) while its held-out views' picture of the object moves further
+    from the truth (0.13 → 0.19 px, ``bench/object_px.py``), and held-out photos are rendered at the poses SfM gave
+    them. On real photos the error tail is partly model misfit (DTU's principal point is off-centre). Off by
+    default."""
     final_error_ratio: float = 2.5
     """Observations above this multiple of the model's mean reprojection error are dropped in each final pass."""
     final_retriangulate: bool = False

@@ -276,14 +276,13 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     import trimesh
     from skimage import measure
 
-    _, sizes = pad_stack([m.astype(np.float32) for m in masks])
     lg = (visual_hull(masks, cams, res, min_views) if logits is None else logits).cpu().numpy()
     if lg.max() <= 0 or lg.min() > 0:
         return [np.full(m.shape, lg.min() > 0) for m in masks]
     v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
     inter = mesh_intersector(trimesh.Trimesh(v - 1.0, f, process=False))
     out = []
-    for i, (W, H) in enumerate(sizes):
+    for i, (H, W) in enumerate(m.shape for m in masks):
         o, d = pixel_center_rays(cams.K[i], cams.R[i], cams.centers[i], W, H)
         out.append(inter.intersects_any(o, d).reshape(H, W))
     return out
