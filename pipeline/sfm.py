@@ -121,8 +121,8 @@ def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "
 
     if rung.mapper == "global":
         opts = pycolmap.GlobalPipelineOptions()
-        opts.random_seed = seed
-        opts.num_threads = threads
+        opts.random_seed = opts.mapper.random_seed = seed  # the global mapper's own options: set both levels
+        opts.num_threads = opts.mapper.num_threads = threads
         return pycolmap.global_mapping(db, images, out, opts)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = seed
