@@ -109,10 +109,12 @@ def _match(db: Path, n_images: int, rung: Rung, matching: str, threads: int = -1
     opts = pycolmap.FeatureMatchingOptions()
     opts.guided_matching = rung.guided
     opts.num_threads = threads
+    verify = pycolmap.TwoViewGeometryOptions()
+    verify.ransac.random_seed = 0  # with -1, guided DSP-SIFT matches verified differently on every run
     if matching == "exhaustive" or (matching == "auto" and n_images <= 80):
-        pycolmap.match_exhaustive(db, matching_options=opts)
+        pycolmap.match_exhaustive(db, matching_options=opts, verification_options=verify)
     else:
-        pycolmap.match_sequential(db, matching_options=opts)
+        pycolmap.match_sequential(db, matching_options=opts, verification_options=verify)
 
 
 def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "", threads: int = -1) -> dict:
@@ -240,11 +242,13 @@ def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, R
 
 
 # ----------------------------------------------------------------------------- final adjustment
-def refine_model(rec, passes: int, error_ratio: float, min_points_per_view: int = 20):
+def refine_model(rec, passes: int, error_ratio: float, min_points_per_view: int = 20, threads: int = -1):
     """A final bundle adjustment of a mapped model (a copy; ``rec`` is not modified): ``passes`` times, drop the
     observations whose reprojection error exceeds ``error_ratio`` × the model's mean error (and points left with
     fewer than two views or a small triangulation angle), then re-adjust poses, points and focal length with a
-    Cauchy loss (1 px scale). Lens distortion is re-adjusted only where the model has some.
+    Cauchy loss (1 px scale), on ``threads`` threads (-1: all cores; Ceres goes parallel above 50 k residuals, and
+    the cameras stage asks for one thread, as from COLMAP's other steps, when ``cameras.deterministic``). Lens
+    distortion is re-adjusted only where the model has some.
 
     COLMAP's mapper keeps observations up to 4 px off; on a rendered capture of 0.34 px mean error their tail held
     the rotation error at 0.059°, and this halves it (0.030°; the held-out photos' silhouettes then line up with the
@@ -260,6 +264,7 @@ def refine_model(rec, passes: int, error_ratio: float, min_points_per_view: int 
     opts.print_summary = False
     opts.refine_extra_params = any(np.any(c.params[list(c.extra_params_idxs())]) for c in out.cameras.values())
     opts.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    opts.ceres.solver_options.num_threads = threads
     for _ in range(passes):
         pycolmap.ObservationManager(out).filter_all_points3D(error_ratio * out.compute_mean_reprojection_error(),
                                                              1.5)
@@ -275,7 +280,7 @@ def refine_model(rec, passes: int, error_ratio: float, min_points_per_view: int 
                  f"{e0:.3f} → {e1:.3f} px"]
 
 
-def retriangulate(rec, database: Path, images: Path, work: Path):
+def retriangulate(rec, database: Path, images: Path, work: Path, seed: int = 0, threads: int = -1):
     """The points of ``rec`` triangulated afresh from every match in ``database`` at its poses and intrinsics (COLMAP's
     point triangulator: poses and cameras stay as they are). After the final passes: they drop the observations
     above the error threshold to fit the poses, and with them a quarter to half of the sparse depths on the object
@@ -286,7 +291,10 @@ def retriangulate(rec, database: Path, images: Path, work: Path):
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     n0 = rec.compute_num_observations()
-    out = pycolmap.triangulate_points(pycolmap.Reconstruction(rec), database, images, work, clear_points=True)
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.random_seed, opts.num_threads = seed, threads
+    out = pycolmap.triangulate_points(pycolmap.Reconstruction(rec), database, images, work, clear_points=True,
+                                      options=opts)
     return out, (f"points re-triangulated at the adjusted poses: {out.compute_num_observations()} observations "
                  f"(the passes kept {n0})")
 

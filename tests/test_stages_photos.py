@@ -460,6 +460,44 @@ def test_a_saved_mapping_gives_the_cameras_of_the_run_that_mapped_it(photo_ws, t
     assert not np.allclose(c["world_mat_0"], a["world_mat_0"], rtol=0, atol=1e-9)
 
 
+def test_a_model_from_a_later_rung_gets_the_final_passes(photo_ws, tmp_path, monkeypatch):
+    """The final adjustment's passes and re-triangulation run by default on a model that the ladder had to climb
+    for (``cameras.climbed_passes``, ``cameras.climbed_retriangulate``), and not on one from the first rung: the
+    torus's saved mapping, reported as mapped at the 'dsp' rung, gives the cameras and points of
+    ``--cameras.final-passes 3 --cameras.final-retriangulate``; ``--cameras.climbed-passes 0`` gives it back as
+    mapped."""
+    import trimesh
+
+    import pipeline.cameras as cameras_stage
+    from bench.pair import from_mapping
+
+    syn, plain = photo_ws
+    saved = from_mapping(plain)
+
+    def climbed(*args):
+        rec, inp, database, rung, tried = saved(*args)
+        assert rung == "default"
+        return rec, inp, database, "dsp", tried
+
+    images = ["--images", str(syn / "images")]
+    monkeypatch.setattr(cameras_stage, "map_photos", saved)
+    assert main(["cameras", str(tmp_path / "passes"), *images, "--cameras.final-passes", "3",
+                 "--cameras.final-retriangulate"]) == 0
+    assert main(["cameras", str(tmp_path / "kept"), *images, "--cameras.final-passes", "3"]) == 0
+    monkeypatch.setattr(cameras_stage, "map_photos", climbed)
+    assert main(["cameras", str(tmp_path / "climbed"), *images]) == 0
+    assert main(["cameras", str(tmp_path / "off"), *images, "--cameras.climbed-passes", "0"]) == 0
+    a, passes, auto, off = (np.load(w / "cameras.npz") for w in (plain, *(tmp_path / n for n in
+                                                                            ("passes", "climbed", "off"))))
+    for key in a.files:
+        np.testing.assert_allclose(auto[key], passes[key], rtol=0, atol=1e-9, err_msg=key)
+        np.testing.assert_allclose(off[key], a[key], rtol=0, atol=1e-9, err_msg=key)
+    assert not np.allclose(auto["world_mat_0"], a["world_mat_0"], rtol=0, atol=1e-9)
+    points = [trimesh.load(tmp_path / n / "points.ply").vertices for n in ("kept", "passes", "climbed")]
+    np.testing.assert_allclose(points[2], points[1], rtol=0, atol=1e-9)
+    assert len(points[2]) > len(points[0])  # re-triangulated: the points the passes dropped are back
+
+
 def test_floating_object_has_no_support_plane(photo_ws):
     """The torus floats in front of its backdrop: no plane carries it, and every stage behaves as before."""
     import json
