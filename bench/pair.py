@@ -49,13 +49,18 @@ def map_once(scene: str, over: dict, remap: bool = False) -> Path:
     return ws
 
 
+def mapped_rung(mapping: Path) -> str:
+    """The ladder's rung that mapped the saved workspace ``mapping`` (its cameras stamp)."""
+    return (Workspace(mapping).stamp("cameras") or {}).get("rung", "default")
+
+
 def from_mapping(mapping: Path):
     """A stand-in for :func:`pipeline.cameras.map_photos` that returns the saved mapping of ``mapping`` (its SfM
     input folder copied into the new workspace, so that paths inside it stay valid) and the ladder's rung that
     mapped it (which decides the final adjustment's passes)."""
     import pycolmap
 
-    rung = (Workspace(mapping).stamp("cameras") or {}).get("rung", "default")
+    rung = mapped_rung(mapping)
 
     def map_photos(ws, photos, cfg):
         inp = ws.root / "sfm" / "input"
@@ -88,9 +93,10 @@ def main() -> None:
     mapping = map_once(a.scene, a.over, a.remap)
     folder = pair_folder(a.scene, a.over)
     log = folder / f"{a.preset}.jsonl"
+    rung = mapped_rung(mapping)
     for k, arm in enumerate(a.arm if a.arm is not None else [""]):
         r = run_arm(a.scene, a.over, mapping, a.preset, arm.split(), folder / "work" / str(k))
-        row = {"arm": arm, "rung": (Workspace(mapping).stamp("cameras") or {}).get("rung"),
+        row = {"arm": arm, "rung": rung,
                **{key: r.get(key) for key in (*SHOWN, "pose", "seconds")}}
         with log.open("a") as f:
             f.write(json.dumps(row) + "\n")

@@ -328,14 +328,15 @@ def finish_model(ws: Workspace, rec, database: Path, inp: Path, cfg: CamerasConf
     distortion is negligible, the final adjustment (:func:`final_adjustment`: passes, then re-triangulation);
     written to sfm/sparse/best with its ``database`` beside (sfm/database.db, where COLMAP puts it). Returns
     (model, notes of the final adjustment)."""
-    rec, notes = prefer_pinhole(rec, cfg.pinhole_tolerance, sfm_threads(cfg))
+    threads = sfm_threads(cfg)
+    rec, notes = prefer_pinhole(rec, cfg.pinhole_tolerance, threads)
     passes, again = final_adjustment(cfg, rung)
-    adjusted, final = refine_model(rec, passes, cfg.final_error_ratio, threads=sfm_threads(cfg))
+    adjusted, final = refine_model(rec, passes, cfg.final_error_ratio, threads=threads)
     if passes > cfg.final_passes:
         final = [f"{note} (the model came from the ladder's rung '{rung}': cameras.climbed-passes)" for note in final]
     if adjusted is not rec and again:
         adjusted, note = retriangulate(adjusted, database, inp, ws.root / "sfm" / "ladder" / "final", cfg.seed,
-                                       sfm_threads(cfg))
+                                       threads)
         final.append(note)
     for note in notes + final:
         print(f"cameras: {note}")
