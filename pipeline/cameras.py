@@ -66,7 +66,7 @@ class CamerasConfig:
     object the others converge on, or two sides of a symmetric scene merged) is rejected as a whole; fewer such
     views are dropped from it (and listed as unregistered)."""
     seed: int = 0
-    """Random seed of COLMAP's mapper."""
+    """Random seed of COLMAP's mapper, its geometric verification's RANSAC and the re-triangulation."""
     deterministic: bool = True
     """Run COLMAP (features, matching, mapping) on one thread: the same photos then give the same cameras, and the
     whole pipeline the same mesh. On all cores its runs differ (two runs of the cow's 40 photos: pose matrices
@@ -571,7 +571,8 @@ def triangulate_given(ws: Workspace, photos: list[Path], cfg: CamerasConfig, giv
     t0 = time.perf_counter()
     try:
         rec = triangulate_at(ws.root / "sfm" / "given", inp, names, np.stack(Ks), np.stack([g[1] for g in given]),
-                             np.stack([g[2] for g in given]), cfg.matching, cfg.max_features, sfm_threads(cfg))
+                             np.stack([g[2] for g in given]), cfg.matching, cfg.max_features, seed=cfg.seed,
+                             threads=sfm_threads(cfg))
         n_points = rec.num_points3D()
     except Exception as exc:  # noqa: BLE001 — COLMAP failing here costs the depth, not the given cameras
         rec, n_points = None, f"0 ({exc})"

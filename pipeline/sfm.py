@@ -103,14 +103,16 @@ def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera
                                   extraction_options=ext)
 
 
-def _match(db: Path, n_images: int, rung: Rung, matching: str, threads: int = -1) -> None:
+def _match(db: Path, n_images: int, rung: Rung, matching: str, seed: int, threads: int = -1) -> None:
+    """Match and verify; ``seed``: the verification's RANSAC seed (with -1, guided DSP-SIFT matches were verified
+    differently on every run)."""
     import pycolmap
 
     opts = pycolmap.FeatureMatchingOptions()
     opts.guided_matching = rung.guided
     opts.num_threads = threads
     verify = pycolmap.TwoViewGeometryOptions()
-    verify.ransac.random_seed = 0  # with -1, guided DSP-SIFT matches verified differently on every run
+    verify.ransac.random_seed = seed
     if matching == "exhaustive" or (matching == "auto" and n_images <= 80):
         pycolmap.match_exhaustive(db, matching_options=opts, verification_options=verify)
     else:
@@ -160,7 +162,7 @@ def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camer
     if not db.exists():
         tmp = db.with_suffix(".tmp")
         shutil.copy(feats, tmp)
-        _match(tmp, sum(len(g) for g in groups), r, matching, threads)
+        _match(tmp, sum(len(g) for g in groups), r, matching, seed, threads)
         tmp.rename(db)
     t2 = time.perf_counter()
     _map_rung(work_p, images_p, r, db, seed, "", {"features": round(t1 - t0, 2), "matching": round(t2 - t1, 2)},
@@ -209,7 +211,7 @@ def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, came
 
 # ----------------------------------------------------------------------------- given cameras
 def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, Rs: np.ndarray, ts: np.ndarray,
-                   matching: str, max_features: int, threads: int = -1):
+                   matching: str, max_features: int, seed: int = 0, threads: int = -1):
     """Sparse points of photos whose cameras are given (``images/<name>.png``; intrinsics for those pixels, world →
     camera poses): the default rung's SIFT features and matches, then COLMAP's point triangulator at the given
     poses (no mapping, no pose refinement). Returns the model; its database is ``work/given.db``."""
@@ -220,7 +222,7 @@ def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, R
     db.unlink(missing_ok=True)
     rung = ladder("default", "default", max_features)[0]
     _extract(db, images, [[f"{n}.png" for n in names]], rung, "PINHOLE", per_image=True, threads=threads)
-    _match(db, len(names), rung, matching, threads)
+    _match(db, len(names), rung, matching, seed, threads)
     rec = pycolmap.Reconstruction()
     database = pycolmap.Database.open(str(db))
     try:

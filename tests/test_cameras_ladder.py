@@ -75,7 +75,7 @@ def test_symmetric_object_stops_with_a_clear_error_never_wrong_poses(tmp_path, c
     dsp, ladder = ladder_rungs("dsp", "dsp")[0], ws / "sfm" / "ladder"
     again = tmp_path / "again.db"
     shutil.copy(ladder / f"features-{dsp.features_key}.db", again)
-    _match(again, 24, dsp, "auto", threads=1)
+    _match(again, 24, dsp, "auto", seed=0, threads=1)
     first = _verified_pairs(ladder / f"matches-{dsp.matches_key}.db")
     assert len(first) == 276 and _verified_pairs(again) == first
 

@@ -1,5 +1,7 @@
 """Pose sanity (pipeline/pose_sanity.py) and the SfM ladder's bookkeeping (pipeline/sfm.py), without COLMAP."""
 
+from dataclasses import asdict
+
 import cv2
 import numpy as np
 import pytest
@@ -126,3 +128,25 @@ def test_shortfalls():
     assert "reprojection error" in shortfalls({**good, "mean_reprojection_error": 1.4})[0]
     assert "track length" in shortfalls({**good, "mean_track_length": 2.1})[0]
     assert "points per view" in shortfalls({**good, "median_points_per_view": 20})[0]
+
+
+def test_the_seed_reaches_the_geometric_verification(monkeypatch, tmp_path):
+    """The seed a rung runs with (``cameras.seed``) is its geometric verification's RANSAC seed too: ``_match``
+    sets it, and ``_run_rung`` hands its seed on (it was fixed at 0 while the mapper took ``cameras.seed``)."""
+    import pycolmap
+
+    import pipeline.sfm as sfm
+
+    seen = []
+    monkeypatch.setattr(pycolmap, "match_exhaustive",
+                        lambda db, matching_options, verification_options: seen.append(
+                            verification_options.ransac.random_seed))
+    rung = ladder("default", "default", 4096)[0]
+    sfm._match(tmp_path / "x.db", 10, rung, "auto", seed=7)
+    assert seen == [7]
+    calls = []
+    monkeypatch.setattr(sfm, "_extract", lambda db, *a, **k: db.write_bytes(b""))
+    monkeypatch.setattr(sfm, "_match", lambda db, n, r, matching, seed, threads: calls.append(seed))
+    monkeypatch.setattr(sfm, "_map_rung", lambda *a, **k: None)
+    sfm._run_rung(str(tmp_path), str(tmp_path), [["a.png", "b.png"]], asdict(rung), "PINHOLE", "auto", 11)
+    assert calls == [11]
