@@ -99,19 +99,22 @@ class CamerasConfig:
     """Passes of the final adjustment (as ``final_passes``, whichever is more) for a model that a later rung of the
     ladder gave: the first rung's model fell short, and the later rungs' features (16 k, guided matching, DSP-SIFT)
     fit looser (the cameras table: 0.7–0.85 px mean reprojection error against 0.33–0.6 px at the first rung). The
-    four synthetic captures that climb, one SfM mapping each (stop 29, before the verification's fixed seed),
-    held-out PSNR (default preset) as mapped → passes →
-    passes and points re-triangulated (``climbed_retriangulate``): the floating cow (dsp) 14.40 → 22.50 → 21.85 dB,
-    the cow on a parquet (guided) 23.23 → 24.15 → 23.50, the cow's 16 views (dsp) 24.27 → 16.65 → 25.17, the jar's
-    24 views of 320×240 (dsp) 32.53 → 32.87 → 32.37 (``bench/pair.py``). The scenes that lose by the passes (jar,
-    book, DTU: −0.7 to −1.4 dB) map at the first rung. 0: no passes but ``final_passes``."""
+    four synthetic captures that climb, one SfM mapping each (stop 30), held-out PSNR (default preset) as mapped →
+    passes → passes and points re-triangulated: the floating cow (dsp) 17.00 → 20.50 → 20.43 dB, the cow on a
+    parquet (dsp) 21.99 → 22.61 → 18.61, the cow's 16 views (dsp) 24.05 → 16.70 → 24.97, the jar's 24 views of
+    320×240 (dsp) 32.26 → 32.89 → 32.53 (``bench/pair.py``; ``climbed_retriangulate`` picks the column). The
+    scenes that lose by the passes (jar, book, DTU: −0.7 to −1.4 dB) map at the first rung. 0: no passes but
+    ``final_passes``."""
     climbed_retriangulate: bool = True
-    """After the climbed passes (``climbed_passes``), triangulate the points afresh (as ``final_retriangulate``):
-    the passes take points with the observations they drop, and where views are few the object's own go below
-    what the object's sphere is fitted to (the cow's 16 views: 22 → 7 points seen inside most views, fewer than
-    20, so the sphere falls back to the images' bound, about 1.7 × larger; masks 0.985 → 0.960 IoU, held-out
-    24.27 → 16.65 dB; re-triangulated 25.17). It costs the other three climbed captures 0.5–0.65 dB against the
-    passes alone (figures under ``climbed_passes``); no capture falls apart by it."""
+    """After the climbed passes (``climbed_passes``), triangulate the points afresh (as ``final_retriangulate``)
+    where the passes take the object's sphere below the 20 points it is fitted to (points seen inside most views,
+    ``SPHERE_MIN_POINTS``) and the model as mapped had them: the passes take points with the observations they
+    drop, and where views are few the object's own go (the cow's 16 views: 22 → 7, the sphere falls back to the
+    images' bound, about 1.7× larger; masks 0.984 → 0.954 IoU, held-out 24.05 → 16.70 dB; re-triangulated
+    24.97). Elsewhere re-triangulating does harm: from every match, the parquet's regular planks bring wrong
+    matches back (0.32 → 0.96 px), no support plane is found and the masks take the floor (IoU 0.99 → 0.48,
+    held-out 22.61 → 18.61 dB); the floating cow and the jar's 24 views lose 0.07 and 0.36 dB (figures under
+    ``climbed_passes``). Off: never after the climbed passes."""
     final_error_ratio: float = 2.5
     """Observations above this multiple of the model's mean reprojection error are dropped in each final pass."""
     final_retriangulate: bool = False
@@ -190,6 +193,43 @@ def write_points(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:
 
 
 # ----------------------------------------------------------------------------- normalisation
+SPHERE_MIN_POINTS = 20
+"""Fewer central points (:func:`central_points`) than this, and the object's sphere is fitted to every point above
+the support plane instead, which the images' bound then caps (a cliff: the 16-view cow's sphere 1.30 → 2.15)."""
+
+
+def central_points(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, support: SupportPlane | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(points above the ``support`` plane, those of them inside at least 75 % of the images): what the object's
+    sphere is fitted to (:func:`normalization`)."""
+    if support is not None:
+        points = points[support.height(points) > 2 * support.tolerance]
+    if not len(points):
+        return points, points
+    uv, z = project_points(Ps, points, blas=False)
+    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 1] >= 0) & (uv[..., 0] < sizes[:, None, 0]) & \
+             (uv[..., 1] < sizes[:, None, 1])
+    return points, points[inside.mean(0) >= 0.75]
+
+
+def sphere_points(rec, cfg: CamerasConfig) -> int:
+    """How many of the COLMAP model's points the object's sphere would be fitted to (:func:`central_points`, with
+    the support plane as the stage finds it; the model's pinhole intrinsics, distortion aside)."""
+    pts = np.array([p.xyz for p in rec.points3D.values() if p.track.length() >= cfg.min_track_length]).reshape(-1, 3)
+    Ks, Rs, ts, sizes = [], [], [], []
+    for i in rec.reg_image_ids():
+        im = rec.image(i)
+        cam = rec.camera(im.camera_id)
+        M = np.asarray(im.cam_from_world().matrix())
+        Ks.append(cam.calibration_matrix()), Rs.append(M[:3, :3]), ts.append(M[:3, 3]), sizes.append((cam.width,
+                                                                                                     cam.height))
+    Rs, ts = np.stack(Rs), np.stack(ts)
+    centers = -np.einsum("nji,nj->ni", Rs, ts)
+    support = find_support(pts, centers, Rs, axes_convergence(centers, Rs[:, 2, :])) if cfg.support else None
+    Ps = np.stack(Ks) @ np.concatenate([Rs, ts[:, :, None]], 2)
+    return len(central_points(pts, Ps, np.asarray(sizes, float), support)[1])
+
+
 def normalization(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, centers: np.ndarray, dirs: np.ndarray,
                   margin: float, focals: np.ndarray | None = None, support: SupportPlane | None = None) -> np.ndarray:
     """scale_mat (normalized → SfM) from sparse points seen inside most images, centred where the optical
@@ -201,14 +241,9 @@ def normalization(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, centers
     bounds what stands on it, and reaches down to it (radius ≥ 1.15 × the centre's height above it)."""
     c = axes_convergence(centers, dirs)
     dist = np.linalg.norm(centers - c, axis=1)
-    if support is not None:
-        points = points[support.height(points) > 2 * support.tolerance]
+    points, central = central_points(points, Ps, sizes, support)
     if len(points):
-        uv, z = project_points(Ps, points, blas=False)
-        inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 1] >= 0) & (uv[..., 0] < sizes[:, None, 0]) & \
-                 (uv[..., 1] < sizes[:, None, 1])
-        central = inside.mean(0) >= 0.75
-        pts = points[central] if central.sum() >= 20 else points
+        pts = central if len(central) >= SPHERE_MIN_POINTS else points
         r = np.percentile(np.linalg.norm(pts - c, axis=1), 97) * margin
     else:
         r = 0.5 * dist.min()
@@ -258,13 +293,16 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     return rec, inp, {"rung": rung, "rungs": tried, "final_adjustment": final}
 
 
-def final_adjustment(cfg: CamerasConfig, rung: str) -> tuple[int, bool]:
-    """The final adjustment for a model from the ladder's ``rung``: (passes, re-triangulate after them).
-    ``cfg.final_passes`` and ``cfg.final_retriangulate``; past the first rung at least ``cfg.climbed_passes``,
-    re-triangulated when ``cfg.climbed_retriangulate``."""
+def final_adjustment(cfg: CamerasConfig, rung: str) -> tuple[int, str]:
+    """The final adjustment for a model from the ladder's ``rung``: (passes, when to re-triangulate after them:
+    "always", "when short" — when the passes take the object's sphere below ``SPHERE_MIN_POINTS`` points, which
+    the model as mapped had — or "never"). ``cfg.final_passes`` and ``cfg.final_retriangulate``; past the first
+    rung at least ``cfg.climbed_passes``, re-triangulated when short if ``cfg.climbed_retriangulate``."""
+    always = "always" if cfg.final_retriangulate else "never"
     if rung == RUNG_NAMES[0] or cfg.climbed_passes <= 0:
-        return cfg.final_passes, cfg.final_retriangulate
-    return max(cfg.final_passes, cfg.climbed_passes), cfg.final_retriangulate or cfg.climbed_retriangulate
+        return cfg.final_passes, always
+    short = "when short" if cfg.climbed_retriangulate else "never"
+    return max(cfg.final_passes, cfg.climbed_passes), "always" if cfg.final_retriangulate else short
 
 
 def sfm_threads(cfg: CamerasConfig) -> int:
@@ -334,7 +372,13 @@ def finish_model(ws: Workspace, rec, database: Path, inp: Path, cfg: CamerasConf
     adjusted, final = refine_model(rec, passes, cfg.final_error_ratio, threads=threads)
     if passes > cfg.final_passes:
         final = [f"{note} (the model came from the ladder's rung '{rung}': cameras.climbed-passes)" for note in final]
-    if adjusted is not rec and again:
+    if adjusted is not rec and again == "when short":
+        before, left = sphere_points(rec, cfg), sphere_points(adjusted, cfg)
+        again = "always" if left < SPHERE_MIN_POINTS <= before else "never"
+        final.append(f"the passes left the object's sphere {left} of its {before} points (it needs "
+                     f"{SPHERE_MIN_POINTS}): " + ("points re-triangulated" if again == "always" else
+                                                  "points kept as adjusted"))
+    if adjusted is not rec and again == "always":
         adjusted, note = retriangulate(adjusted, database, inp, ws.root / "sfm" / "ladder" / "final", cfg.seed,
                                        threads)
         final.append(note)

@@ -461,15 +461,20 @@ def test_a_saved_mapping_gives_the_cameras_of_the_run_that_mapped_it(photo_ws, t
 
 
 def test_a_model_from_a_later_rung_gets_the_final_passes(photo_ws, tmp_path, monkeypatch):
-    """The final adjustment's passes and re-triangulation run by default on a model that the ladder had to climb
-    for (``cameras.climbed_passes``, ``cameras.climbed_retriangulate``), and not on one from the first rung: the
-    torus's saved mapping, reported as mapped at the 'dsp' rung, gives the cameras and points of
-    ``--cameras.final-passes 3 --cameras.final-retriangulate``; ``--cameras.climbed-passes 0`` gives it back as
-    mapped."""
+    """The final adjustment's passes run by default on a model that the ladder had to climb for
+    (``cameras.climbed_passes``), and not on one from the first rung; its points are re-triangulated only where the
+    passes take the object's sphere below the points it needs (``cameras.climbed_retriangulate``). The torus's saved
+    mapping, reported as mapped at the 'dsp' rung, gives the cameras and points of ``--cameras.final-passes 3``
+    (its sphere keeps its points); with the sphere's counts stubbed (100 as mapped, 0 after the passes) those of
+    ``--cameras.final-passes 3 --cameras.final-retriangulate``, but not where the sphere was short as mapped
+    already (10, then 5); ``--cameras.climbed-passes 0`` gives it back as mapped."""
+    import json
+
     import trimesh
 
     import pipeline.cameras as cameras_stage
     from bench.pair import from_mapping
+    from dvr.data import list_images
 
     syn, plain = photo_ws
     saved = from_mapping(plain)
@@ -487,15 +492,33 @@ def test_a_model_from_a_later_rung_gets_the_final_passes(photo_ws, tmp_path, mon
     monkeypatch.setattr(cameras_stage, "map_photos", climbed)
     assert main(["cameras", str(tmp_path / "climbed"), *images]) == 0
     assert main(["cameras", str(tmp_path / "off"), *images, "--cameras.climbed-passes", "0"]) == 0
-    a, passes, auto, off = (np.load(w / "cameras.npz") for w in (plain, *(tmp_path / n for n in
-                                                                            ("passes", "climbed", "off"))))
+    for name, counts in (("short", [100, 0]), ("short_as_mapped", [10, 5])):  # sphere points as mapped, after
+        told = iter(counts)
+        with monkeypatch.context() as m:
+            m.setattr(cameras_stage, "sphere_points", lambda rec, cfg, told=told: next(told))
+            assert main(["cameras", str(tmp_path / name), *images]) == 0
+    a, passes, kept, auto, short, short_before, off = (np.load(w / "cameras.npz") for w in (plain, *(
+        tmp_path / n for n in ("passes", "kept", "climbed", "short", "short_as_mapped", "off"))))
     for key in a.files:
-        np.testing.assert_allclose(auto[key], passes[key], rtol=0, atol=1e-9, err_msg=key)
+        np.testing.assert_allclose(auto[key], kept[key], rtol=0, atol=1e-9, err_msg=key)
+        np.testing.assert_allclose(short[key], passes[key], rtol=0, atol=1e-9, err_msg=key)
+        np.testing.assert_allclose(short_before[key], kept[key], rtol=0, atol=1e-9, err_msg=key)  # nothing to undo
         np.testing.assert_allclose(off[key], a[key], rtol=0, atol=1e-9, err_msg=key)
     assert not np.allclose(auto["world_mat_0"], a["world_mat_0"], rtol=0, atol=1e-9)
-    points = [trimesh.load(tmp_path / n / "points.ply").vertices for n in ("kept", "passes", "climbed")]
-    np.testing.assert_allclose(points[2], points[1], rtol=0, atol=1e-9)
-    assert len(points[2]) > len(points[0])  # re-triangulated: the points the passes dropped are back
+    points = {n: trimesh.load(tmp_path / n / "points.ply").vertices for n in ("kept", "passes", "climbed", "short")}
+    np.testing.assert_allclose(points["climbed"], points["kept"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(points["short"], points["passes"], rtol=0, atol=1e-9)
+    assert len(points["short"]) > len(points["kept"])  # re-triangulated: the points the passes dropped are back
+    notes = json.loads((tmp_path / "climbed" / ".stages" / "cameras.json").read_text())["final_adjustment"]
+    left = int(notes[1].split("sphere ")[1].split(" of")[0])
+    assert "points kept as adjusted" in notes[1] and left >= cameras_stage.SPHERE_MIN_POINTS
+    # the count is what the object's sphere is fitted to: the exported points inside most views
+    cams = load_cameras(tmp_path / "climbed" / "cameras.npz")
+    sizes = np.array([cv2.imread(str(p)).shape[1::-1] for p in list_images(tmp_path / "climbed" / "images")], float)
+    in_frame = (points["climbed"] - cams.scale_mat[:3, 3]) / cams.scale_mat[0, 0]  # SfM → normalized (a sphere)
+    assert len(cameras_stage.central_points(in_frame, cams.P, sizes)[1]) == left
+    assert "points re-triangulated" in json.loads((tmp_path / "short" / ".stages" / "cameras.json").read_text()
+                                                  )["final_adjustment"][1]
 
 
 def test_floating_object_has_no_support_plane(photo_ws):
