@@ -79,10 +79,9 @@ def stages(names: tuple[str, ...], ws: Path, cfg, **sources) -> None:
 
 def textured(ws: Path):
     """The textured GLB of a workspace: trimesh mesh and its texture (float RGB)."""
-    import trimesh
+    from pipeline.texture import read_textured
 
-    tm = trimesh.load(ws / "mesh" / "textured.glb", force="mesh")
-    return tm, np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
+    return read_textured(ws / "mesh" / "textured.glb")
 
 
 def dtu_heldout(n: int) -> list[int]:

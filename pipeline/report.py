@@ -73,13 +73,12 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
 
     With ``out_dir``, each photo | render pair is also written there as ``render_<tag>_<view>.png``.
     """
-    import trimesh
 
     from dvr.cameras import load_cameras, to_sfm
     from dvr.data import list_images, read_mask, read_rgb
     from dvr.metrics import masked_psnr
 
-    from .texture import render_textured
+    from .texture import read_textured, render_textured
 
     glb = ws.mesh / "textured.glb"
     if not glb.exists():
@@ -88,8 +87,7 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
     held = ws.root / "gt" / "heldout"
     if (held / "cameras.npz").exists() and not (ws.root / "sfm").exists():  # GT frame == workspace frame
         sets.insert(0, (held / "images", held / "masks", held / "cameras.npz", "held-out"))
-    tm = trimesh.load(glb, force="mesh")
-    tex = np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
+    tm, tex = read_textured(glb)
     out = []
     for img_dir, mask_dir, cam_file, tag in sets:
         paths = list_images(img_dir)

@@ -371,9 +371,50 @@ def render_textured(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: 
     return img.reshape(h, w, 3), hit.reshape(h, w)
 
 
-def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: np.ndarray) -> None:
+def upright(cams: Cameras, frame: str) -> tuple[np.ndarray, str]:
+    """(4×4 transform from the mesh's ``frame`` — 'sfm' or 'normalized' — to glTF's display frame, where the up
+    comes from): +Y is up — the support plane's normal (a printed board's z) or, floating, the capture's up
+    (:func:`pipeline.support.capture_up`) —, +Z points level at the first photo's camera (a viewer's default view
+    then looks from there), and the origin is the object's sphere centre, dropped onto the support plane when there
+    is one. SfM's frame has no up of its own (COLMAP's is its first camera's, y down), and viewers put glTF's +Y
+    up, so without this the object opened upside down or tilted."""
+    from .support import capture_up
+
+    if cams.ground is not None:
+        up, source = np.asarray(cams.ground[:3], float), "support plane"
+        origin = -float(cams.ground[3]) * up / float(up @ up)  # the sphere centre (0) dropped onto the plane
+    else:
+        up, source, origin = capture_up(cams.R), "cameras", np.zeros(3)
+    up = up / np.linalg.norm(up)
+    toward = cams.centers[0] - origin
+    toward = toward - (toward @ up) * up
+    if np.linalg.norm(toward) < 1e-9:  # the first camera straight above: any level direction
+        toward = np.cross(up, np.eye(3)[np.argmin(np.abs(up))])
+    z = toward / np.linalg.norm(toward)
+    R = np.stack([np.cross(up, z), up, z])
+    if frame == "sfm":  # a rotation and a shift in the mesh's own units (SfM's; metres with a board)
+        origin = transform_points(cams.scale_mat, origin[None])[0]
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, -R @ origin
+    return T, source
+
+
+def read_textured(path: Path) -> tuple[trimesh.Trimesh, np.ndarray]:
+    """The textured mesh of a ``textured.glb`` in the mesh stage's frame (its node's upright transform not applied)
+    and its texture (float RGB)."""
+    scene = trimesh.load(path)
+    geoms = list(scene.geometry.values()) if isinstance(scene, trimesh.Scene) else [scene]
+    if len(geoms) != 1:
+        raise ValueError(f"{path}: expected one mesh, found {len(geoms)}")
+    tm = geoms[0]
+    return tm, np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
+
+
+def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: np.ndarray,
+                    display: np.ndarray | None = None) -> None:
     """``textured.glb`` (PBR material), ``textured.obj`` / ``.mtl`` and their texture ``textured.png`` in ``out_dir``.
-    The PNG is encoded once for the OBJ (in a thread: the encoder releases the GIL) while the GLB encodes its own."""
+    ``display``: the GLB's node transform (:func:`upright`; its vertices stay those given). The PNG is encoded once
+    for the OBJ (in a thread: the encoder releases the GIL) while the GLB encodes its own."""
     from PIL import Image
 
     img = Image.fromarray((tex.clip(0, 1) * 255).round().astype(np.uint8))
@@ -383,7 +424,10 @@ def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np
         mat = trimesh.visual.material.PBRMaterial(baseColorTexture=img, metallicFactor=0.0, roughnessFactor=1.0)
         mesh = trimesh.Trimesh(verts, faces, visual=trimesh.visual.TextureVisuals(uv=uvs, material=mat),
                                process=False)
-        mesh.export(out_dir / "textured.glb")
+        scene = trimesh.Scene()
+        scene.add_geometry(mesh, node_name="object", geom_name="textured",
+                           transform=np.eye(4) if display is None else display)
+        scene.export(out_dir / "textured.glb")
         simple = trimesh.visual.material.SimpleMaterial(name="textured", diffuse=(255, 255, 255, 255),
                                                         ambient=(255, 255, 255, 255), specular=(0, 0, 0, 255))
         mesh_obj = trimesh.Trimesh(verts, faces, visual=trimesh.visual.TextureVisuals(uv=uvs, material=simple),
@@ -470,8 +514,10 @@ def run(job: Job) -> Done:
     nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame,
                                            field_gain, clipped)
     out_v = to_sfm(nv, S) if cfg.frame == "sfm" else nv
-    export_textured(ws.mesh, out_v, nf, uvs, tex)
+    display, up_from = upright(cams, cfg.frame)
+    export_textured(ws.mesh, out_v, nf, uvs, tex, display)
     stats.pop("filled")
+    stats["glb_up"] = {"from": up_from, "node_matrix": np.round(display, 9).tolist()}
     print(f"texture: {tex.shape[0]}² atlas, {100 * (1 - stats['unseen_frac']):.1f} % of texels from photos → "
           f"{ws.mesh / 'textured.glb'}")
     return Done(stats)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from dvr.cameras import load_cameras
+from dvr.cameras import Cameras, load_cameras, sphere_frame, to_sfm
 from pipeline.blend import (
     ViewSampler,
     clipped_pixels,
@@ -29,10 +29,12 @@ from pipeline.texture import (
     export_textured,
     fill_unseen,
     rasterize_atlas,
+    read_textured,
     render_textured,
     sample_bilinear,
     texel_geometry,
     texture_mesh,
+    upright,
 )
 from tests.conftest import ROOT, SHARED
 
@@ -187,16 +189,66 @@ def test_outputs_load(baked, tmp_path):
     import pymeshlab
 
     _, _, (nv, nf, uvs, tex, stats) = baked
-    export_textured(tmp_path, nv, nf, uvs, tex)
+    display = np.eye(4)
+    display[:3, :3], display[:3, 3] = trimesh.transformations.rotation_matrix(0.7, [1, 2, 3])[:3, :3], [1, -2, 3]
+    export_textured(tmp_path, nv, nf, uvs, tex, display)
     for f in ("textured.obj", "textured.mtl", "textured.png", "textured.glb"):
         assert (tmp_path / f).exists(), f
     assert "textured.png" in (tmp_path / "textured.mtl").read_text()
-    g = trimesh.load(tmp_path / "textured.glb", force="mesh")
+    g, read_tex = read_textured(tmp_path / "textured.glb")  # the mesh as given: the node's transform not applied
     assert len(g.faces) == len(nf) and g.visual.uv.shape == (len(g.vertices), 2)
+    np.testing.assert_allclose(g.vertices, nv, atol=1e-5)
+    assert read_tex.shape == tex.shape
+    seen = trimesh.load(tmp_path / "textured.glb", force="mesh")  # as a viewer places it: through the node
+    np.testing.assert_allclose(seen.vertices, trimesh.transform_points(nv, display), atol=1e-5)
     ms = pymeshlab.MeshSet()
     ms.load_new_mesh(str(tmp_path / "textured.obj"))
     assert ms.current_mesh().face_number() == len(nf)
     assert ms.current_mesh().has_wedge_tex_coord() or ms.current_mesh().has_vertex_tex_coord()
+
+
+def _level_ring(up: np.ndarray, n: int = 8, radius: float = 3.0, height: float = 1.0):
+    """World → camera rotations and centres of a ring of level cameras (no roll) around the origin, looking at it,
+    in a world whose up is ``up``."""
+    up = up / np.linalg.norm(up)
+    a = np.cross(up, [1.0, 0, 0]) if abs(up[0]) < 0.9 else np.cross(up, [0, 1.0, 0])
+    a /= np.linalg.norm(a)
+    b = np.cross(up, a)
+    Rs, Cs = [], []
+    for ang in np.linspace(0, 2 * np.pi, n, endpoint=False):
+        c = radius * (np.cos(ang) * a + np.sin(ang) * b) + height * up
+        z = -c / np.linalg.norm(c)
+        x = np.cross(z, up)
+        x /= np.linalg.norm(x)
+        Rs.append(np.stack([x, np.cross(z, x), z])), Cs.append(c)
+    return np.stack(Rs), np.stack(Cs)
+
+
+@pytest.mark.parametrize("grounded", [True, False])
+def test_upright_puts_the_glb_up_along_gltf_y(grounded):
+    """The GLB's node turns the mesh's frame so that a viewer (glTF: +Y up) shows the object standing: +Y is the
+    support plane's normal (else the cameras' up), the plane goes to y = 0, and the first camera lies level
+    along +Z; the same display from the SfM frame as from the normalized one."""
+    up = np.array([0.3, -0.8, 0.5])
+    up /= np.linalg.norm(up)
+    Rs, Cs = _level_ring(up)
+    K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(Rs), 1, 1))
+    ground = np.append(up, 0.6) if grounded else None  # the plane 0.6 below the sphere centre
+    cams = Cameras(K, Rs, -np.einsum("nij,nj->ni", Rs, Cs), sphere_frame(np.array([2.0, -1.0, 5.0]), 4.0), ground)
+    T, source = upright(cams, "normalized")
+    assert source == ("support plane" if grounded else "cameras")
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(T[:3, :3]) > 0
+    np.testing.assert_allclose(T[:3, :3] @ up, [0, 1, 0], atol=1e-9)
+    first = trimesh.transform_points(cams.centers[:1], T)[0]
+    assert abs(first[0]) < 1e-9 and first[2] > 0
+    on_plane = -0.6 * up + np.array([[0.0, 0, 0], [*np.cross(up, [1.0, 0, 0])]])
+    heights = trimesh.transform_points(on_plane, T)[:, 1]
+    np.testing.assert_allclose(heights, [0, 0] if grounded else [-0.6, -0.6], atol=1e-9)
+    T_sfm, _ = upright(cams, "sfm")  # the same turn, in SfM's units: the display is the normalized one × radius
+    points = np.random.default_rng(0).normal(size=(5, 3))
+    np.testing.assert_allclose(trimesh.transform_points(to_sfm(points, cams.scale_mat), T_sfm),
+                               4.0 * trimesh.transform_points(points, T), atol=1e-9)
 
 
 def test_gltf_validator(baked, tmp_path):
@@ -207,7 +259,9 @@ def test_gltf_validator(baked, tmp_path):
     if node is None or not js.exists():
         pytest.skip("node or the npm gltf-validator is not installed (make setup-web installs it)")
     _, _, (nv, nf, uvs, tex, stats) = baked
-    export_textured(tmp_path, nv, nf, uvs, tex)
+    display = np.eye(4)
+    display[:3, :3], display[:3, 3] = trimesh.transformations.rotation_matrix(0.7, [1, 2, 3])[:3, :3], [1, -2, 3]
+    export_textured(tmp_path, nv, nf, uvs, tex, display)  # with the upright node, as the stage writes it
     script = ("const v=require('gltf-validator');const fs=require('fs');"
               f"v.validateBytes(new Uint8Array(fs.readFileSync('{tmp_path / 'textured.glb'}')))"
               ".then(r=>{console.log(JSON.stringify(r.issues));process.exit(r.issues.numErrors>0?1:0)})"
