@@ -372,12 +372,13 @@ def render_textured(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: 
 
 
 def upright(cams: Cameras, frame: str) -> tuple[np.ndarray, str]:
-    """(4×4 transform from the mesh's ``frame`` — 'sfm' or 'normalized' — to glTF's display frame, where the up
-    comes from): +Y is up — the support plane's normal (a printed board's z) or, floating, the capture's up
-    (:func:`pipeline.support.capture_up`) —, +Z points level at the first photo's camera (a viewer's default view
-    then looks from there), and the origin is the object's sphere centre, dropped onto the support plane when there
-    is one. SfM's frame has no up of its own (COLMAP's is its first camera's, y down), and viewers put glTF's +Y
-    up, so without this the object opened upside down or tilted."""
+    """(T, source): T the 4×4 rigid transform from the mesh's ``frame`` ('sfm' or 'normalized') to glTF's display
+    frame, ``source`` where its up came from ('support plane' or 'cameras'). +Y is up — the support plane's normal
+    (a printed board's z) or, floating, the capture's up (:func:`pipeline.support.capture_up`); +Z points level at
+    the first photo's camera (a viewer's default view then looks from there); the origin is the object's sphere
+    centre, dropped onto the support plane when there is one. SfM's frame has no up of its own (COLMAP's is its
+    first camera's, y down), and viewers put glTF's +Y up, so without this the object opened upside down or
+    tilted."""
     from .support import capture_up
 
     if cams.ground is not None:
