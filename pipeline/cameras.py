@@ -36,7 +36,7 @@ from .photos import (
     is_readable,
     read_photo,
 )
-from .pose_sanity import axes_convergence, pose_sanity
+from .pose_sanity import axes_convergence, model_views, pose_sanity
 from .sfm import RUNG_NAMES, ladder, model_stats, refine_model, retriangulate, run_rung, shortfalls, triangulate_at
 from .support import SupportPlane, find_support
 from .workspace import Done, Job, StageError, Workspace
@@ -216,18 +216,12 @@ def sphere_points(rec, cfg: CamerasConfig) -> int:
     """How many of the COLMAP model's points the object's sphere would be fitted to (:func:`central_points`, with
     the support plane as the stage finds it; the model's pinhole intrinsics, distortion aside)."""
     pts = np.array([p.xyz for p in rec.points3D.values() if p.track.length() >= cfg.min_track_length]).reshape(-1, 3)
-    Ks, Rs, ts, sizes = [], [], [], []
-    for i in rec.reg_image_ids():
-        im = rec.image(i)
-        cam = rec.camera(im.camera_id)
-        M = np.asarray(im.cam_from_world().matrix())
-        Ks.append(cam.calibration_matrix()), Rs.append(M[:3, :3]), ts.append(M[:3, 3]), sizes.append((cam.width,
-                                                                                                     cam.height))
-    Rs, ts = np.stack(Rs), np.stack(ts)
-    centers = -np.einsum("nji,nj->ni", Rs, ts)
+    views = model_views(rec)
+    Rs, centers = np.stack([v.R for v in views]), np.stack([v.center for v in views])
     support = find_support(pts, centers, Rs, axes_convergence(centers, Rs[:, 2, :])) if cfg.support else None
-    Ps = np.stack(Ks) @ np.concatenate([Rs, ts[:, :, None]], 2)
-    return len(central_points(pts, Ps, np.asarray(sizes, float), support)[1])
+    Ps = np.stack([v.K @ np.concatenate([v.R, v.t[:, None]], 1) for v in views])
+    sizes = np.array([(v.width, v.height) for v in views], float)
+    return len(central_points(pts, Ps, sizes, support)[1])
 
 
 def normalization(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, centers: np.ndarray, dirs: np.ndarray,
@@ -298,11 +292,11 @@ def final_adjustment(cfg: CamerasConfig, rung: str) -> tuple[int, str]:
     "always", "when short" — when the passes take the object's sphere below ``SPHERE_MIN_POINTS`` points, which
     the model as mapped had — or "never"). ``cfg.final_passes`` and ``cfg.final_retriangulate``; past the first
     rung at least ``cfg.climbed_passes``, re-triangulated when short if ``cfg.climbed_retriangulate``."""
-    always = "always" if cfg.final_retriangulate else "never"
-    if rung == RUNG_NAMES[0] or cfg.climbed_passes <= 0:
-        return cfg.final_passes, always
-    short = "when short" if cfg.climbed_retriangulate else "never"
-    return max(cfg.final_passes, cfg.climbed_passes), "always" if cfg.final_retriangulate else short
+    climbed = rung != RUNG_NAMES[0] and cfg.climbed_passes > 0
+    passes = max(cfg.final_passes, cfg.climbed_passes) if climbed else cfg.final_passes
+    if cfg.final_retriangulate:
+        return passes, "always"
+    return passes, "when short" if climbed and cfg.climbed_retriangulate else "never"
 
 
 def sfm_threads(cfg: CamerasConfig) -> int:

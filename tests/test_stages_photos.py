@@ -474,6 +474,7 @@ def test_a_model_from_a_later_rung_gets_the_final_passes(photo_ws, tmp_path, mon
 
     import pipeline.cameras as cameras_stage
     from bench.pair import from_mapping
+    from dvr.cameras import to_normalized
     from dvr.data import list_images
 
     syn, plain = photo_ws
@@ -515,7 +516,7 @@ def test_a_model_from_a_later_rung_gets_the_final_passes(photo_ws, tmp_path, mon
     # the count is what the object's sphere is fitted to: the exported points inside most views
     cams = load_cameras(tmp_path / "climbed" / "cameras.npz")
     sizes = np.array([cv2.imread(str(p)).shape[1::-1] for p in list_images(tmp_path / "climbed" / "images")], float)
-    in_frame = (points["climbed"] - cams.scale_mat[:3, 3]) / cams.scale_mat[0, 0]  # SfM → normalized (a sphere)
+    in_frame = to_normalized(points["climbed"], cams.scale_mat)
     assert len(cameras_stage.central_points(in_frame, cams.P, sizes)[1]) == left
     assert "points re-triangulated" in json.loads((tmp_path / "short" / ".stages" / "cameras.json").read_text()
                                                   )["final_adjustment"][1]

@@ -185,12 +185,18 @@ def test_no_visible_seams(baked):
     assert np.median(diffs) < 0.02 and np.percentile(diffs, 95) < 0.08
 
 
+def _some_display() -> np.ndarray:
+    """A rigid 4×4 node transform for the GLB (a turn and a shift)."""
+    display = trimesh.transformations.rotation_matrix(0.7, [1, 2, 3])
+    display[:3, 3] = [1, -2, 3]
+    return display
+
+
 def test_outputs_load(baked, tmp_path):
     import pymeshlab
 
     _, _, (nv, nf, uvs, tex, stats) = baked
-    display = np.eye(4)
-    display[:3, :3], display[:3, 3] = trimesh.transformations.rotation_matrix(0.7, [1, 2, 3])[:3, :3], [1, -2, 3]
+    display = _some_display()
     export_textured(tmp_path, nv, nf, uvs, tex, display)
     for f in ("textured.obj", "textured.mtl", "textured.png", "textured.glb"):
         assert (tmp_path / f).exists(), f
@@ -259,8 +265,7 @@ def test_gltf_validator(baked, tmp_path):
     if node is None or not js.exists():
         pytest.skip("node or the npm gltf-validator is not installed (make setup-web installs it)")
     _, _, (nv, nf, uvs, tex, stats) = baked
-    display = np.eye(4)
-    display[:3, :3], display[:3, 3] = trimesh.transformations.rotation_matrix(0.7, [1, 2, 3])[:3, :3], [1, -2, 3]
+    display = _some_display()
     export_textured(tmp_path, nv, nf, uvs, tex, display)  # with the upright node, as the stage writes it
     script = ("const v=require('gltf-validator');const fs=require('fs');"
               f"v.validateBytes(new Uint8Array(fs.readFileSync('{tmp_path / 'textured.glb'}')))"
