@@ -113,10 +113,10 @@ STAGES: tuple[Stage, ...] = (
           requires=lambda ws: [(ws.images, "cameras"), (ws.masks, "masks"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.images, ws.masks, ws.cameras] + ([ws.depth] if ws.depth.exists() else []),
           outputs=lambda ws: [ws.model / "final.pt"]),
-    Stage("mesh", "Extract and clean the mesh (reads model/; writes mesh/raw.ply and mesh/clean.ply).",
+    Stage("mesh", "Extract and clean the mesh (reads model/, points.ply; writes mesh/raw.ply and mesh/clean.ply).",
           mesh.run, mesh.MeshConfig,
           requires=lambda ws: [(ws.model / "final.pt", "train")],
-          inputs=lambda ws, src: [ws.model / "final.pt"],
+          inputs=lambda ws, src: [ws.model / "final.pt", ws.root / "points.ply"],
           outputs=lambda ws: [ws.mesh / "clean.ply", ws.mesh / "raw.ply"]),
     Stage("texture", "UV-texture the clean mesh from the photos (reads mesh/clean.ply, model/, images/, "
           "cameras.npz; writes mesh/textured.obj/.mtl/.png and mesh/textured.glb).", texture.run, texture.TextureConfig,

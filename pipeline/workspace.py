@@ -180,8 +180,8 @@ def newest_mtime(p: Path) -> float:
 
 def subset_workspace(full: Path, dst: Path, keep: list[int]) -> None:
     """A new workspace ``dst`` of views ``keep`` (indices into ``full``'s sorted images): their images, masks and
-    sparse depth, and the cameras renumbered (scale_mat and the support plane kept) — to hold photos out of
-    training after SfM and the masks saw them all."""
+    sparse depth, the cameras renumbered (scale_mat and the support plane kept) and the SfM points — to hold photos
+    out of training after SfM and the masks saw them all."""
     import shutil
 
     import numpy as np
@@ -198,3 +198,5 @@ def subset_workspace(full: Path, dst: Path, keep: list[int]) -> None:
     extra = {k: z[k] for k in ("scale_mat", "ground_plane") if k in z.files}
     np.savez(Path(dst) / "cameras.npz", **extra, **{f"{k}_{j}": z[f"{k}_{i}"] for j, i in enumerate(keep)
                                                     for k in ("world_mat", "scale_mat", "camera_mat")})
+    if (Path(full) / "points.ply").exists():
+        shutil.copy2(Path(full) / "points.ply", Path(dst) / "points.ply")

@@ -3,7 +3,7 @@
 import numpy as np
 import trimesh
 
-from pipeline.mesh import MeshConfig, clean_mesh, keep_large_components
+from pipeline.mesh import MeshConfig, clean_mesh, floaters, keep_large_components
 
 
 def _holed_sphere_and_speck():
@@ -28,7 +28,7 @@ def test_decimation_reaches_the_budget_after_hole_filling():
     """close_holes selects the faces it adds; without clearing that selection the decimation acts on those
     few faces only and the budget is silently missed (seen on DTU: 682 k faces for a 40 k budget)."""
     v, f, _ = _holed_sphere_and_speck()
-    cv, cf = clean_mesh(v, f, MeshConfig(max_faces=5000))
+    cv, cf, _ = clean_mesh(v, f, MeshConfig(max_faces=5000))
     assert 4000 <= len(cf) <= 5000
     m = trimesh.Trimesh(cv, cf)
     assert len(m.split(only_watertight=False)) == 1  # the speck is gone
@@ -53,3 +53,87 @@ def test_make_closed_splits_an_edge_shared_by_four_faces():
     c = ms.current_mesh()
     out = trimesh.Trimesh(c.vertex_matrix(), c.face_matrix(), process=False)
     assert out.is_watertight and len(out.faces) >= 24
+
+
+def _house_and_slab(n_points=2000, slab_density=0.0, seed=0):
+    """A sphere of radius 0.5 (the object) with ``n_points`` points on its surface, and a disc-like slab of radius
+    0.2 floating above it carrying ``slab_density`` × the sphere's density of points."""
+    rng = np.random.default_rng(seed)
+    body = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    slab = trimesh.creation.cylinder(radius=0.2, height=0.04, sections=32)
+    slab.apply_translation([0, 0, 0.8])
+    pts = [trimesh.sample.sample_surface(body, n_points, seed=1)[0]]
+    n_slab = int(round(slab_density * n_points * slab.area / body.area))
+    if n_slab:
+        pts.append(trimesh.sample.sample_surface(slab, n_slab, seed=2)[0])
+    pts = np.concatenate(pts) + rng.normal(0, 0.003, (sum(len(p) for p in pts), 3))  # SfM's noise
+    m = trimesh.util.concatenate([body, slab])
+    return np.asarray(m.vertices), np.asarray(m.faces), pts, len(body.faces)
+
+
+def test_a_piece_no_point_lies_on_is_dropped():
+    """The slab would carry ≈ 190 points at the object's density and carries none: a floater (DTU's roof slab)."""
+    v, f, pts, n_body = _house_and_slab()
+    keep, dropped = floaters(v, f, pts, 0.1, 0.02)
+    assert keep.sum() == n_body and keep[:n_body].all()
+    assert len(dropped) == 1 and dropped[0]["points"] == 0 and 170 < dropped[0]["expected"] < 215
+    assert dropped[0]["faces"] == len(f) - n_body
+    cv, cf, dropped = clean_mesh(v, f, MeshConfig(), pts)
+    assert len(trimesh.Trimesh(cv, cf).split(only_watertight=False)) == 1 and len(dropped) == 1
+    assert np.allclose(np.linalg.norm(cv, axis=1), 0.5, atol=0.02)  # what is left is the object
+    assert floaters(v, f, pts, 0.0, 0.02)[0].all()  # 0: off
+
+
+def test_a_piece_with_its_own_points_is_kept():
+    """A second part seen and matched like the object (full density, or a third of it) stays; so does every piece
+    when no points are known, and a piece too small to judge (fewer than 10 points expected)."""
+    for density in (1.0, 0.3):
+        v, f, pts, _ = _house_and_slab(slab_density=density)
+        keep, dropped = floaters(v, f, pts, 0.1, 0.02)
+        assert keep.all() and dropped == []
+    v, f, pts, _ = _house_and_slab()
+    assert floaters(v, f, pts[:0], 0.1, 0.02)[0].all()
+    assert len(clean_mesh(v, f, MeshConfig(), None)[1]) == len(clean_mesh(v, f, MeshConfig(), pts)[1]) + 128
+    v, f, pts, _ = _house_and_slab(n_points=80)  # 7.6 points expected on the slab (at 150: 14, dropped)
+    assert floaters(v, f, pts, 0.1, 0.02)[0].all()
+
+
+def test_the_mesh_stage_drops_a_floater_from_the_points_in_the_sfm_frame(small_ws, tmp_path, monkeypatch, capsys):
+    """The stage reads points.ply in the SfM frame (cameras.npz's), maps it into the field's frame (the trained
+    field's own sphere here, not cameras.npz's normalized frame), drops the piece no point lies on and records it in
+    its stamp; without points.ply both pieces stay."""
+    import json
+    import shutil
+
+    import torch
+
+    from dvr.cameras import load_cameras, transform_points
+    from dvr.trainer import load_model
+    from pipeline import mesh as mesh_stage
+    from pipeline.cameras import write_points
+    from pipeline.config import Config
+    from pipeline.stages import run_stage
+
+    ws = tmp_path / "ws"
+    shutil.copytree(small_ws, ws)
+    cfg = Config()
+    cfg.train.iterations, cfg.train.batch_rays, cfg.train.progress, cfg.train.preview_every = 5, 128, False, 0
+    cfg.train.hull_res, cfg.train.field.base_res, cfg.train.field.plane_res = 32, 32, (16, 32)
+    run_stage("train", ws, cfg)
+    v, f, pts, n_body = _house_and_slab()
+    monkeypatch.setattr(mesh_stage, "extract_mesh", lambda *a, **k: (v, f, np.full((len(v), 3), 0.5)))
+    scale_mat = load_model(ws / "model" / "final.pt", torch.device("cpu"))[1]  # the field's frame → SfM
+    assert not np.allclose(scale_mat, load_cameras(ws / "cameras.npz").scale_mat)  # a frame of its own
+    run_stage("mesh", ws, cfg)
+    both = trimesh.load(ws / "mesh" / "clean.ply")
+    assert len(both.split(only_watertight=False)) == 2  # no points.ply: nothing to judge by
+    write_points(ws / "points.ply", transform_points(scale_mat, pts), np.zeros((len(pts), 3), np.uint8))
+    capsys.readouterr()
+    run_stage("mesh", ws, cfg, force=True)
+    assert "dropped a floating piece of 128 faces: 0 SfM points lie on it" in capsys.readouterr().out
+    one = trimesh.load(ws / "mesh" / "clean.ply")
+    assert len(one.split(only_watertight=False)) == 1
+    assert np.allclose(np.linalg.norm(transform_points(np.linalg.inv(scale_mat), one.vertices), axis=1), 0.5,
+                       atol=0.02)
+    stamp = json.loads((ws / ".stages" / "mesh.json").read_text())
+    assert [p["faces"] for p in stamp["floaters"]] == [len(f) - n_body]
