@@ -118,9 +118,9 @@ def _make_closed(ms) -> None:
 
 def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig,
                points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[dict]]:
-    """Small components, duplicates, degenerate faces, non-manifold edges, small holes, smoothing, decimation, then
-    the pieces that none of the SfM ``points`` (mesh frame; None: none known) lies on (:func:`floaters`). Returns
-    (vertices, faces, the dropped floaters)."""
+    """Small components, duplicates, degenerate faces, non-manifold edges, small holes, smoothing, decimation, small
+    components again (the repairs can split some off), then the pieces that none of the SfM ``points`` (mesh frame;
+    None: none known) lies on (:func:`floaters`). Returns (vertices, faces, the dropped floaters)."""
     import pymeshlab  # here, not at the top: the config tree (and a GPU machine's train stage) imports this module
 
     ms = pymeshlab.MeshSet()
@@ -143,13 +143,14 @@ def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig,
         _make_closed(ms)  # an edge collapse can pinch two sheets into one edge shared by four faces
     ms.meshing_remove_unreferenced_vertices()
     m = ms.current_mesh()
-    v, f = m.vertex_matrix(), m.face_matrix()
-    if points is None:
-        return v, f, []
-    keep, dropped = floaters(v, f, points, cfg.floater_support, cfg.floater_distance)
-    if not dropped:
-        return v, f, []
-    m = trimesh.Trimesh(v, f[keep], process=False)
+    v = m.vertex_matrix()
+    # the repairs split pieces joined by a vertex: DTU's decimated mesh got an 18-face speck that a viewer frames
+    f = keep_large_components(v, m.face_matrix(), cfg.min_component_ratio)
+    dropped = []
+    if points is not None:
+        keep, dropped = floaters(v, f, points, cfg.floater_support, cfg.floater_distance)
+        f = f[keep]
+    m = trimesh.Trimesh(v, f, process=False)
     m.remove_unreferenced_vertices()
     return np.asarray(m.vertices), np.asarray(m.faces), dropped
 
