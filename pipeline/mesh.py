@@ -35,8 +35,8 @@ class MeshConfig:
     it than this fraction of what the largest piece's density of points (per unit area) would put there, where that
     is at least 10 points. A real part of the object is seen and matched as the rest of it is; a piece no point lies
     on explains some views' colours at a depth where nothing is (DTU: a 6000-face slab of roof hung above the house
-    with 0 of the 290 points its area would carry, and a piece of wall at the sphere's edge with 0 of 40, while the
-    house carries 2018 of the 2179 points in the sphere). 0: off; no effect without points."""
+    with 0 of the 270–330 points its area would carry, and a piece of wall at the sphere's edge with 0 of about 40,
+    while the house carries 2018 of the 2179 points in the sphere). 0: off; no effect without points."""
     floater_distance: float = 0.02
     """A point lies on the mesh within this distance of its surface (working-sphere radii)."""
     footprint: float = 0.03
@@ -162,7 +162,11 @@ def sfm_points(path, scale_mat: np.ndarray) -> np.ndarray | None:
 
     if not path.exists():
         return None
-    loaded = trimesh.load(path, process=False)  # a PLY of no points loads as an empty Scene
+    try:
+        loaded = trimesh.load(path, file_type="ply", process=False)  # a PLY of no points loads as an empty Scene
+    except Exception as e:  # trimesh raises what its parser meets (ValueError, KeyError, struct.error, …)
+        raise StageError(f"{path}: unreadable SfM points ({type(e).__name__}); rerun the cameras stage "
+                         "(--force) or delete the file") from e
     pts = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
     return transform_points(np.linalg.inv(scale_mat), pts)
 

@@ -154,3 +154,17 @@ def test_a_speck_split_off_by_the_repairs_is_dropped():
     cv, cf, _ = clean_mesh(v, f, MeshConfig())
     assert len(trimesh.Trimesh(cv, cf).split(only_watertight=False)) == 1
     assert np.allclose(np.linalg.norm(cv, axis=1), 0.5, atol=0.02)
+
+
+def test_unreadable_points_are_a_clear_error(tmp_path):
+    """A damaged points.ply stops the mesh stage with one line naming it and the fix, not a parser's traceback."""
+    import pytest
+
+    from pipeline.mesh import sfm_points
+    from pipeline.workspace import StageError
+
+    bad = tmp_path / "points.ply"
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 5\nproperty float x\nend_header\n\x00")
+    with pytest.raises(StageError, match="points.ply: unreadable SfM points .*rerun the cameras stage"):
+        sfm_points(bad, np.eye(4))
+    assert sfm_points(tmp_path / "none.ply", np.eye(4)) is None
