@@ -7,7 +7,6 @@ Needs ``make setup-web`` (model-viewer) and Chromium; the screenshot waits until
 (``bench/glb_shot.mjs``)."""
 from __future__ import annotations
 
-import base64
 import subprocess
 import sys
 import tempfile
@@ -16,7 +15,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.report import VIEWER_JS  # noqa: E402
+from pipeline.report import VIEWER_JS, inlined_viewer  # noqa: E402
 
 ORBITS = ("0deg 75deg auto", "90deg 75deg auto", "180deg 75deg auto", "270deg 75deg auto", "0deg 5deg auto")
 SIDE = 300
@@ -25,8 +24,7 @@ SIDE = 300
 def glb_views(glb: Path, out: Path) -> None:
     if not VIEWER_JS.exists():
         sys.exit(f"{VIEWER_JS}: missing; run make setup-web")
-    js = VIEWER_JS.read_text().replace("</script", "<\\/script")
-    src = "data:model/gltf-binary;base64," + base64.b64encode(glb.read_bytes()).decode()
+    js, src = inlined_viewer(glb)
     style = f"width:{SIDE}px;height:{SIDE}px;background:#eee;flex:none"
     views = "".join(f'<model-viewer loading="eager" src="{src}" camera-orbit="{o}" style="{style}"></model-viewer>'
                     for o in ORBITS)

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 import trimesh
 
+from dvr.cameras import transform_points
 from dvr.device import resolve_device
 from dvr.extract import extract_mesh
 from dvr.fields import evaluate_in_chunks
@@ -158,8 +159,6 @@ def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig,
 def sfm_points(path, scale_mat: np.ndarray) -> np.ndarray | None:
     """The cameras stage's sparse points (``points.ply``, SfM frame) in the field's frame (``scale_mat``: field →
     SfM); None when there is no such file (a workspace from given cameras without triangulation)."""
-    from dvr.cameras import transform_points
-
     if not path.exists():
         return None
     try:

@@ -23,6 +23,13 @@ VIEWER_JS = Path(__file__).resolve().parents[1] / "node_modules" / "@google" / "
     "model-viewer.min.js"
 
 
+def inlined_viewer(glb: Path) -> tuple[str, str]:
+    """(model-viewer's script, with every "</script" escaped so that it can sit inside a <script> element; the
+    GLB ``glb`` as a data URI): a page that shows the GLB with nothing fetched."""
+    js = VIEWER_JS.read_text().replace("</script", "<\\/script")
+    return js, "data:model/gltf-binary;base64," + base64.b64encode(glb.read_bytes()).decode()
+
+
 def _png_b64(img_rgb: np.ndarray) -> str:
     ok, buf = cv2.imencode(".png", cv2.cvtColor(img_rgb, cv2.COLOR_RGB2BGR))
     return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode()
@@ -208,8 +215,7 @@ def build(ws: Workspace, stats: dict | None = None) -> str:
     if glb.exists():
         parts.append("<h2>Mesh</h2>")
         if VIEWER_JS.exists():
-            src = "data:model/gltf-binary;base64," + base64.b64encode(glb.read_bytes()).decode()
-            js = VIEWER_JS.read_text().replace("</script", "<\\/script")
+            js, src = inlined_viewer(glb)
             parts.append(f'<script type="module">{js}</script>'
                          f'<model-viewer id="viewer" src="{src}" camera-controls auto-rotate shadow-intensity="0.5" '
                          'style="width:720px;height:540px;background:#eee"></model-viewer>')

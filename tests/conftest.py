@@ -16,6 +16,15 @@ def _seed():
     torch.manual_seed(0)
 
 
+def tiny_training(cfg, iterations: int, batch_rays: int):
+    """``cfg`` (a pipeline Config) with a training of seconds on ``small_ws``: few steps, no progress bar or
+    previews, a small hull and field."""
+    t = cfg.train
+    t.iterations, t.batch_rays, t.progress, t.preview_every = iterations, batch_rays, False, 0
+    t.hull_res, t.field.base_res, t.field.plane_res = 32, 32, (16, 32)
+    return cfg
+
+
 def small_scene(**over):
     """8 views at 64 px of a checker torus (renders in well under a second)."""
     from pipeline.synth import scene_from_dict

@@ -113,12 +113,11 @@ def test_the_mesh_stage_drops_a_floater_from_the_points_in_the_sfm_frame(small_w
     from pipeline.cameras import write_points
     from pipeline.config import Config
     from pipeline.stages import run_stage
+    from tests.conftest import tiny_training
 
     ws = tmp_path / "ws"
     shutil.copytree(small_ws, ws)
-    cfg = Config()
-    cfg.train.iterations, cfg.train.batch_rays, cfg.train.progress, cfg.train.preview_every = 5, 128, False, 0
-    cfg.train.hull_res, cfg.train.field.base_res, cfg.train.field.plane_res = 32, 32, (16, 32)
+    cfg = tiny_training(Config(), iterations=5, batch_rays=128)
     run_stage("train", ws, cfg)
     v, f, pts, n_body = _house_and_slab()
     monkeypatch.setattr(mesh_stage, "extract_mesh", lambda *a, **k: (v, f, np.full((len(v), 3), 0.5)))

@@ -9,6 +9,7 @@ from pipeline import stages
 from pipeline.config import Config
 from pipeline.stages import Stage, reconstruct, run_stage
 from pipeline.workspace import Done, StageError, Workspace
+from tests.conftest import tiny_training
 
 
 def _counting_stage(calls: list, name="count"):
@@ -99,9 +100,7 @@ def test_reconstruct_a_synthetic_workspace_then_nothing_to_do(small_ws, tmp_path
     redoes nothing but the report."""
     ws = tmp_path / "ws"
     shutil.copytree(small_ws, ws)
-    cfg = Config()
-    cfg.train.iterations, cfg.train.batch_rays, cfg.train.progress, cfg.train.preview_every = 30, 256, False, 0
-    cfg.train.hull_res, cfg.train.field.base_res, cfg.train.field.plane_res = 32, 32, (16, 32)
+    cfg = tiny_training(Config(), iterations=30, batch_rays=256)
     cfg.mesh.resolution, cfg.mesh.max_faces, cfg.texture.size = 64, 3000, 128
     glb = reconstruct(None, ws, cfg)
     assert glb == (ws / "mesh" / "textured.glb").resolve() and glb.exists() and (ws / "report.html").exists()
