@@ -265,7 +265,8 @@ def robust_weights(col: np.ndarray, reference: np.ndarray, count: np.ndarray, th
 
 class BlendAccumulator:
     """Running sums of a weighted blend of N texels, per sample tier (0 clean, 1 edge, 2 silhouette band) apart;
-    with ``extremes``, per texel and channel the largest and smallest sample and their weights (a trimmed mean)."""
+    with ``extremes``, per tier, texel and channel the largest and smallest sample and their weights (a trimmed
+    mean of the samples :meth:`blend` takes)."""
 
     TIERS = (0, 1, 2)
 
@@ -273,26 +274,37 @@ class BlendAccumulator:
         self.sums = np.zeros((4, len(self.TIERS), n))  # (R, G, B, weight) × tier × texel
         self.acc = {k: self.sums[:3, k].T for k in self.TIERS}  # (n, 3) views
         self.weight = {k: self.sums[3, k] for k in self.TIERS}
-        self.count = np.zeros(n, np.int32)
+        self.counts = np.zeros((len(self.TIERS), n), np.int32)  # samples per tier and texel
         self.extremes = extremes
         if extremes:
-            # (n, 3) with contiguous channels, as the samples' colours
-            self.hi, self.lo = np.full((3, n), -np.inf, np.float32).T, np.full((3, n), np.inf, np.float32).T
-            self.hi_w, self.lo_w = np.zeros((3, n), np.float32).T, np.zeros((3, n), np.float32).T
+            # per tier (n, 3) with contiguous channels, as the samples' colours
+            t = len(self.TIERS)
+            self.hi, self.lo = np.full((t, 3, n), -np.inf, np.float32), np.full((t, 3, n), np.inf, np.float32)
+            self.hi_w, self.lo_w = np.zeros((t, 3, n), np.float32), np.zeros((t, 3, n), np.float32)
+
+    @property
+    def count(self) -> np.ndarray:
+        """Samples (views) per texel (N,), all tiers."""
+        return self.counts.sum(0, dtype=np.int32)
 
     def add(self, idx: np.ndarray, col: np.ndarray, weight: np.ndarray, tier: np.ndarray) -> None:
         """Samples of one or more views (texel ``idx`` unique within each view), in view order: texel indices (k,),
         colours (k, 3), weights (k,), tiers (k,). All views in one call sum exactly as one call per view would."""
-        n = len(self.count)
+        n = self.counts.shape[1]
         key = idx + n * tier.astype(np.intp) if tier.any() else idx
         wcol = weight[:, None] * col
         for j in range(4):
             self.sums[j] += np.bincount(key, wcol[:, j] if j < 3 else weight, len(self.TIERS) * n).reshape(-1, n)
-        self.count += np.bincount(idx, minlength=n).astype(np.int32)
+        self.counts += np.bincount(key, minlength=len(self.TIERS) * n).reshape(-1, n).astype(np.int32)
         if self.extremes:
-            for j in range(3):
-                self._extreme(idx, col[:, j], weight, self.hi[:, j], self.hi_w[:, j], np.fmax, np.greater)
-                self._extreme(idx, col[:, j], weight, self.lo[:, j], self.lo_w[:, j], np.fmin, np.less)
+            for k in self.TIERS:
+                s = np.flatnonzero(tier == k) if tier.any() else (np.arange(len(idx)) if k == 0 else idx[:0])
+                if not len(s):
+                    continue
+                at, val, w = idx.take(s), col.take(s, 0), weight.take(s)
+                for j in range(3):
+                    self._extreme(at, val[:, j], w, self.hi[k, j], self.hi_w[k, j], np.fmax, np.greater)
+                    self._extreme(at, val[:, j], w, self.lo[k, j], self.lo_w[k, j], np.fmin, np.less)
 
     @staticmethod
     def _extreme(idx, value, weight, best, best_w, pick, better) -> None:
@@ -310,7 +322,7 @@ class BlendAccumulator:
     def tier(self, edge_fallback_only: bool) -> np.ndarray:
         """Per texel the tier :meth:`blend` takes: the first with any weight (with ``edge_fallback_only`` clean before
         edge, else the two together as 0), the silhouette band last; −1 where nothing sees the texel."""
-        out = np.full(len(self.count), -1, np.int8)
+        out = np.full(self.counts.shape[1], -1, np.int8)
         order = (2, 1, 0) if edge_fallback_only else (2, 0)
         for k in order:
             w = self.weight[k] + (self.weight[1] if (k == 0 and not edge_fallback_only) else 0.0)
@@ -327,17 +339,40 @@ class BlendAccumulator:
             wsum[s] += self.weight[k][s]
         return acc / np.maximum(wsum, 1e-300)[:, None], wsum
 
+    def _tier_rows(self, edge_fallback_only: bool) -> list[tuple[int, np.ndarray]]:
+        """(tier, texels (N,) bool whose :meth:`tier` blends that tier's samples) for each tier."""
+        tier = self.tier(edge_fallback_only)
+        return [(k, tier == k if (edge_fallback_only or k != 1) else tier == 0) for k in self.TIERS]
+
+    def tier_count(self, edge_fallback_only: bool) -> np.ndarray:
+        """Per texel (N,) the number of samples of its :meth:`tier` (the views :meth:`blend` averages)."""
+        out = np.zeros(self.counts.shape[1], np.int32)
+        for k, s in self._tier_rows(edge_fallback_only):
+            out[s] += self.counts[k][s]
+        return out
+
     def reference(self, edge_fallback_only: bool, min_views: int = 3) -> np.ndarray:
-        """Robust colour (N, 3): per channel, the weighted mean without the largest and the smallest sample where
-        ``min_views`` or more views see the texel (their median for three), else :meth:`blend`."""
+        """Robust colour (N, 3): per channel, the weighted mean of the samples of the texel's :meth:`tier` without
+        their largest and smallest where ``min_views`` or more of them see the texel (their median for three), else
+        :meth:`blend`. A down-weighted edge sample (it may be background) never stands in for a clean extreme."""
         out, _ = self.blend(edge_fallback_only)
         if not self.extremes:
             return out
-        acc, wsum = sum(self.acc.values()), sum(self.weight.values())[:, None]
-        rest = wsum - self.hi_w - self.lo_w
-        ok = (self.count[:, None] >= min_views) & (rest > 1e-6 * wsum)
-        hi, lo = np.where(ok, self.hi, 0.0), np.where(ok, self.lo, 0.0)
-        trimmed = (acc - self.hi_w * hi - self.lo_w * lo) / np.where(ok, rest, 1.0)
+        n = self.counts.shape[1]
+        acc, wsum, count = np.zeros((n, 3)), np.zeros((n, 1)), self.tier_count(edge_fallback_only)
+        hi, lo = np.full((3, n), -np.inf, np.float32), np.full((3, n), np.inf, np.float32)
+        hi_w, lo_w = np.zeros((3, n), np.float32), np.zeros((3, n), np.float32)
+        for k, s in self._tier_rows(edge_fallback_only):
+            acc[s] += self.acc[k][s]
+            wsum[s, 0] += self.weight[k][s]
+            up, down = s & (self.hi[k] > hi), s & (self.lo[k] < lo)
+            hi, hi_w = np.where(up, self.hi[k], hi), np.where(up, self.hi_w[k], hi_w)
+            lo, lo_w = np.where(down, self.lo[k], lo), np.where(down, self.lo_w[k], lo_w)
+        hi, lo, hi_w, lo_w = hi.T, lo.T, hi_w.T, lo_w.T
+        rest = wsum - hi_w - lo_w
+        ok = (count[:, None] >= min_views) & (rest > 1e-6 * wsum)
+        hi, lo = np.where(ok, hi, 0.0), np.where(ok, lo, 0.0)
+        trimmed = (acc - hi_w * hi - lo_w * lo) / np.where(ok, rest, 1.0)
         return np.where(ok, trimmed, out)
 
 
@@ -481,7 +516,7 @@ def _bake_texels(sampler: ViewSampler, cfg: TextureConfig, offsets: np.ndarray |
     col, wsum = first.blend(cfg.edge_fallback_only)
     tier = first.tier(cfg.edge_fallback_only)
     if robust:
-        reference, count = first.reference(cfg.edge_fallback_only), first.count
+        reference, count = first.reference(cfg.edge_fallback_only), first.tier_count(cfg.edge_fallback_only)
         del first
         second = blend_views(samples, n, cfg, reference=reference, count=count)
         robust_col, robust_wsum = second.blend(cfg.edge_fallback_only)

@@ -415,6 +415,20 @@ def read_textured(path: Path) -> tuple[trimesh.Trimesh, np.ndarray]:
     return tm, np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
 
 
+GLTF_CLAMP_SAMPLER = {"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}
+"""Linear filtering with mip-maps, clamped to the edge (glTF's default wrap is REPEAT)."""
+
+
+def clamped_textures(tree: dict) -> None:
+    """Every texture of a glTF ``tree`` samples with :data:`GLTF_CLAMP_SAMPLER`: the atlas's charts reach to within
+    a texel of its border, and with the default REPEAT wrap a viewer's bilinear and mip-map filtering there blends
+    in the opposite border's texels."""
+    if tree.get("textures"):
+        tree["samplers"] = [dict(GLTF_CLAMP_SAMPLER)]
+        for texture in tree["textures"]:
+            texture["sampler"] = 0
+
+
 def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: np.ndarray,
                     display: np.ndarray | None = None) -> None:
     """``textured.glb`` (PBR material), ``textured.obj`` / ``.mtl`` and their texture ``textured.png`` in ``out_dir``.
@@ -432,7 +446,7 @@ def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np
         scene = trimesh.Scene()
         scene.add_geometry(mesh, node_name="object", geom_name="textured",
                            transform=np.eye(4) if display is None else display)
-        scene.export(out_dir / "textured.glb")
+        scene.export(out_dir / "textured.glb", tree_postprocessor=clamped_textures)
         simple = trimesh.visual.material.SimpleMaterial(name="textured", diffuse=(255, 255, 255, 255),
                                                         ambient=(255, 255, 255, 255), specular=(0, 0, 0, 255))
         mesh_obj = trimesh.Trimesh(verts, faces, visual=trimesh.visual.TextureVisuals(uv=uvs, material=simple),

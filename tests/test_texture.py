@@ -275,6 +275,24 @@ def test_gltf_validator(baked, tmp_path):
     assert out.returncode == 0, out.stdout + out.stderr
 
 
+def test_glb_textures_clamp_to_edge(tmp_path):
+    """The GLB's texture samples clamped to the edge (glTF's default REPEAT would blend the atlas's opposite border
+    into charts that reach it), with mip-mapped linear filtering."""
+    import json
+    import struct
+
+    box = trimesh.creation.box()
+    uvs = np.random.default_rng(0).random((len(box.vertices), 2))
+    export_textured(tmp_path, box.vertices, box.faces, uvs, np.full((8, 8, 3), 0.5))
+    data = (tmp_path / "textured.glb").read_bytes()
+    tree = json.loads(data[20:20 + struct.unpack("<I", data[12:16])[0]])
+    assert tree["textures"]
+    for texture in tree["textures"]:
+        sampler = tree["samplers"][texture["sampler"]]
+        assert sampler["wrapS"] == sampler["wrapT"] == 33071  # CLAMP_TO_EDGE
+        assert sampler["minFilter"] == 9987 and sampler["magFilter"] == 9729
+
+
 # ---- synthetic scenes rendered here (a few small views; the bake's robustness features) ----
 
 def look_at_camera(center, target, f: float, size: int, down=(0.0, 0.0, -1.0)):
@@ -572,24 +590,24 @@ def test_depth_maps_without_triangles_in_view():
 
 
 def _reference_accumulate(n, views, extremes):
-    """The blend sums one view at a time, as the bake first computed them."""
+    """The blend sums one view at a time, as the bake first computed them; the extremes per tier."""
     acc, weight = np.zeros((3, n, 3)), np.zeros((3, n))
     count = np.zeros(n, np.int32)
-    hi, lo = np.full((n, 3), -np.inf, np.float32), np.full((n, 3), np.inf, np.float32)
-    hi_w, lo_w = np.zeros((n, 3), np.float32), np.zeros((n, 3), np.float32)
+    hi, lo = np.full((3, n, 3), -np.inf, np.float32), np.full((3, n, 3), np.inf, np.float32)
+    hi_w, lo_w = np.zeros((3, n, 3), np.float32), np.zeros((3, n, 3), np.float32)
     for idx, col, w, tier in views:
         for k in range(3):
             s = tier == k
             acc[k][idx[s]] += w[s, None] * col[s]
             weight[k][idx[s]] += w[s]
+            if extremes:
+                i, c, wt = idx[s], col[s], np.broadcast_to(w[s, None], col[s].shape)
+                for val, vw, better in ((hi[k], hi_w[k], np.greater), (lo[k], lo_w[k], np.less)):
+                    cur = val[i]
+                    up = better(c, cur)
+                    val[i] = np.where(up, c, cur)
+                    vw[i] = np.where(up, wt, vw[i])
         count[idx] += 1
-        if extremes:
-            wt = np.broadcast_to(w[:, None], col.shape)
-            for val, vw, better in ((hi, hi_w, np.greater), (lo, lo_w, np.less)):
-                cur = val[idx]
-                up = better(col, cur)
-                val[idx] = np.where(up, col, cur)
-                vw[idx] = np.where(up, wt, vw[idx])
     return acc, weight, count, hi, lo, hi_w, lo_w
 
 
@@ -611,13 +629,34 @@ def test_blend_accumulator_all_views_at_once_equals_view_by_view():
     for k in range(3):
         assert np.array_equal(out.acc[k], acc[k]) and np.array_equal(out.weight[k], weight[k])
     for got, want in ((out.hi, hi), (out.lo, lo), (out.hi_w, hi_w), (out.lo_w, lo_w)):
-        assert np.array_equal(got, want)
+        assert np.array_equal(got.transpose(0, 2, 1), want)
     one_by_one = BlendAccumulator(n, extremes=True)
     for v in views:
         one_by_one.add(*v)
     for mode in (True, False):
         assert np.array_equal(out.reference(mode), one_by_one.reference(mode))
         assert np.array_equal(out.blend(mode)[0], one_by_one.blend(mode)[0])
+
+
+def test_an_edge_sample_never_trims_a_clean_one():
+    """The robust pass of a texel seen cleanly by some views judges them by THEIR trimmed mean: an edge sample (down-
+    weighted, maybe background) neither counts as a view nor stands in for an extreme. Two clean views (0.5, 0.9)
+    and a black edge sample: both clean views stay (0.7; counting the edge sample made it three views, trimmed the
+    0.9 away and rejected it: 0.5). Three clean views and a white edge sample: the clean median is the reference, so
+    the clean outlier is rejected."""
+    from pipeline.blend import blend_views
+
+    cfg = TextureConfig(edge_weight=0.02, outlier_threshold=0.05, edge_fallback_only=True)
+    for clean, edge, want in (([0.5, 0.9], 0.0, 0.7), ([0.5, 0.52, 0.95], 1.0, 0.51)):
+        k = len(clean) + 1
+        col = np.repeat(np.array(clean + [edge], np.float32)[:, None], 3, 1)
+        weight = np.array([1.0] * len(clean) + [cfg.edge_weight], np.float32)
+        samples = (np.zeros(k, np.intp), col, weight, np.array([0] * len(clean) + [1], np.int8))
+        first = blend_views(samples, 1, cfg, extremes=True)
+        assert first.tier_count(True)[0] == len(clean) and first.count[0] == k
+        reference, count = first.reference(True), first.tier_count(True)
+        got = blend_views(samples, 1, cfg, reference=reference, count=count).blend(True)[0][0]
+        assert np.allclose(got, want, atol=2e-3), (clean, edge, got)
 
 
 def test_sharpness_map_matches_kornia():
