@@ -277,7 +277,7 @@ class BlendAccumulator:
         self.counts = np.zeros((len(self.TIERS), n), np.int32)  # samples per tier and texel
         self.extremes = extremes
         if extremes:
-            # per tier (n, 3) with contiguous channels, as the samples' colours
+            # (tier, channel, texel): each channel of a tier contiguous, as the samples' colours are
             t = len(self.TIERS)
             self.hi, self.lo = np.full((t, 3, n), -np.inf, np.float32), np.full((t, 3, n), np.inf, np.float32)
             self.hi_w, self.lo_w = np.zeros((t, 3, n), np.float32), np.zeros((t, 3, n), np.float32)
