@@ -298,7 +298,7 @@ class BlendAccumulator:
         self.counts += np.bincount(key, minlength=len(self.TIERS) * n).reshape(-1, n).astype(np.int32)
         if self.extremes:
             for k in self.TIERS:
-                s = np.flatnonzero(tier == k) if tier.any() else (np.arange(len(idx)) if k == 0 else idx[:0])
+                s = np.flatnonzero(tier == k)
                 if not len(s):
                     continue
                 at, val, w = idx.take(s), col.take(s, 0), weight.take(s)
@@ -331,10 +331,8 @@ class BlendAccumulator:
 
     def blend(self, edge_fallback_only: bool) -> tuple[np.ndarray, np.ndarray]:
         """Colours (N, 3) and weights (N,) of the samples of each texel's :meth:`tier`."""
-        tier = self.tier(edge_fallback_only)
         acc, wsum = np.zeros_like(self.acc[0]), np.zeros_like(self.weight[0])
-        for k in self.TIERS:
-            s = tier == k if (edge_fallback_only or k != 1) else tier == 0
+        for k, s in self._tier_rows(edge_fallback_only):
             acc[s] += self.acc[k][s]
             wsum[s] += self.weight[k][s]
         return acc / np.maximum(wsum, 1e-300)[:, None], wsum
