@@ -212,10 +212,17 @@ def central_points(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, suppor
     return points, points[inside.mean(0) >= 0.75]
 
 
+def model_points(rec, min_track_length: int) -> tuple[np.ndarray, np.ndarray]:
+    """The COLMAP model's points seen in at least ``min_track_length`` images: xyz (M, 3) and colour (M, 3) uint8."""
+    kept = [p for p in rec.points3D.values() if p.track.length() >= min_track_length]
+    return (np.asarray([p.xyz for p in kept], np.float64).reshape(-1, 3),
+            np.asarray([p.color for p in kept], np.uint8).reshape(-1, 3))
+
+
 def sphere_points(rec, cfg: CamerasConfig) -> int:
     """How many of the COLMAP model's points the object's sphere would be fitted to (:func:`central_points`, with
     the support plane as the stage finds it; the model's pinhole intrinsics, distortion aside)."""
-    pts = np.array([p.xyz for p in rec.points3D.values() if p.track.length() >= cfg.min_track_length]).reshape(-1, 3)
+    pts = model_points(rec, cfg.min_track_length)[0]
     views = model_views(rec)
     Rs, centers = np.stack([v.R for v in views]), np.stack([v.center for v in views])
     support = find_support(pts, centers, Rs, axes_convergence(centers, Rs[:, 2, :])) if cfg.support else None
@@ -499,12 +506,7 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
         M = pose.matrix() if callable(getattr(pose, "matrix", None)) else np.asarray(pose.matrix)
         Ks.append(K), Rs.append(M[:3, :3]), ts.append(M[:3, 3]), sizes.append((nw, nh)), kept.append(name)
     Ks, Rs, ts, sizes = np.stack(Ks), np.stack(Rs), np.stack(ts), np.asarray(sizes, float)
-    pts, cols = [], []
-    for p in urec.points3D.values():
-        if p.track.length() >= cfg.min_track_length:
-            pts.append(p.xyz), cols.append(p.color)
-    pts = np.asarray(pts).reshape(-1, 3)
-    cols = np.asarray(cols, np.uint8).reshape(-1, 3)
+    pts, cols = model_points(urec, cfg.min_track_length)
     Rs, ts, pts, fit = use_board(ws.root, und, kept, Ks, Rs, ts, sizes, pts, cfg)  # a printed board: metres
     centers = -np.einsum("nji,nj->ni", Rs, ts)
     Ps = Ks @ np.concatenate([Rs, ts[:, :, None]], 2)

@@ -128,24 +128,44 @@ class TextureConfig:
     """Device of the texture field used for unseen texels."""
 
 
-def make_atlas(verts: np.ndarray, faces: np.ndarray, size: int, padding: int):
-    """xatlas: (vmapping, faces into the new vertices, uvs in [0, 1])."""
+ATLAS_UTILISATION = 0.45
+"""Share of its square that xatlas's atlas fills with charts (these chart options, 4 texels of padding): 0.42-0.50
+on DTU's mesh, the cow and the fuze bottle at 2048-texel sides, 0.30-0.42 at 1000."""
+
+
+def make_atlas(verts: np.ndarray, faces: np.ndarray, density: float, padding: int, max_side: int,
+               min_side: int = 256):
+    """xatlas at ``density`` texels per unit length (its atlas as large as that needs; re-charted at a density
+    scaled to fit when its longer side falls outside [``min_side``, ``max_side``]) → (vmapping, faces into the new
+    vertices, uvs in [0, 1] of a square texture, its side). The uvs keep xatlas's texel grid: a chart's texels and
+    padding are texels of the texture (a non-square atlas sits in the square's lower left)."""
     import xatlas  # here, not at the top: the config tree imports this module
 
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(verts.astype(np.float32), faces.astype(np.uint32))
-    po = xatlas.PackOptions()
-    po.resolution = size
-    po.padding = padding
-    po.bilinear = True
     co = xatlas.ChartOptions()
     co.max_iterations = 1  # 2-4× faster than the default 4; charts are slightly less round
     # charts grow in superlinear time on large flat regions (a 40 k-face book: 41 s); bounding their boundary
     # length to half the surface's scale takes 1-2 s, for ~20 % less atlas utilisation
-    co.max_boundary_length = 0.5 * float(np.sqrt(trimesh.Trimesh(verts, faces, process=False).area))
-    atlas.generate(co, po)
+    area = trimesh.Trimesh(verts, faces, process=False).area
+    co.max_boundary_length = 0.5 * float(np.sqrt(area))
+    # charting again costs as much as the first time: a density whose atlas would pass the cap starts below it
+    density = min(density, max_side * float(np.sqrt(ATLAS_UTILISATION / max(area, 1e-12))))
+    po = xatlas.PackOptions()
+    po.padding = padding
+    po.bilinear = True
+    for _ in range(3):
+        po.texels_per_unit = float(density)
+        atlas = xatlas.Atlas()
+        atlas.add_mesh(verts.astype(np.float32), faces.astype(np.uint32))
+        atlas.generate(co, po)
+        w, h = atlas.width, atlas.height
+        side = max(w, h)
+        if min_side <= side <= max_side:
+            break
+        # the atlas's side scales about linearly with the density; 2 % inside the bound leaves room for the packing
+        density *= (0.98 * max_side if side > max_side else 1.02 * min_side) / side
     vmap, idx, uvs = atlas[0]
-    return vmap, idx.astype(np.int64), uvs.astype(np.float64)
+    uvs = uvs.astype(np.float64) * np.array([w, h]) / side
+    return vmap, idx.astype(np.int64), uvs, int(min(side, max_side))
 
 
 def rasterize_atlas(uvs: np.ndarray, faces: np.ndarray, size: int) -> np.ndarray:
@@ -297,34 +317,30 @@ def photo_texel_density(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[
     return float(best[seen][order][np.searchsorted(cum, 0.5 * cum[-1])])
 
 
-def atlas_size(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]], cfg: TextureConfig,
-               utilisation: float = 0.6) -> int:
-    """Side of the texture: about ``cfg.texel_density`` texels per photo pixel on the object (the surface area at
-    :func:`photo_texel_density`, over xatlas' typical utilisation), a multiple of 128 in [256, ``cfg.size``];
-    ``cfg.size`` when ``texel_density`` is 0."""
-    if cfg.texel_density <= 0:
-        return cfg.size
-    tpu = cfg.texel_density * photo_texel_density(mesh, cams, sizes)
-    side = np.sqrt(mesh.area * tpu * tpu / utilisation)
-    return int(min(cfg.size, max(256, 128 * np.ceil(side / 128))))
+def texels_per_unit(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]], cfg: TextureConfig) -> float:
+    """The atlas's density: ``cfg.texel_density`` texels per photo pixel on the object
+    (:func:`photo_texel_density`); with ``texel_density`` 0 (or no view seeing the object), that which fills a
+    ``cfg.size`` square (:func:`make_atlas` keeps the side ≤ ``cfg.size``)."""
+    tpu = cfg.texel_density * photo_texel_density(mesh, cams, sizes) if cfg.texel_density > 0 else 0.0
+    return tpu if tpu > 0 else cfg.size * float(np.sqrt(ATLAS_UTILISATION / max(mesh.area, 1e-12)))
 
 
 def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams: Cameras, cfg: TextureConfig,
                  field: Field | None = None, field_frame: np.ndarray | None = None,
                  field_gain: np.ndarray | None = None, clipped: list[np.ndarray] | None = None):
     """Normalized-frame mesh → (new verts, new faces, uvs, texture (side, side, 3) float, stats); the side follows
-    the photos' resolution on the object (:func:`atlas_size`). ``field_gain``: see :func:`fill_unseen`;
+    the photos' resolution on the object (:func:`texels_per_unit`). ``field_gain``: see :func:`fill_unseen`;
     ``clipped``: the photos' over-exposed pixels (:func:`pipeline.blend.clipped_pixels` of the photos as taken,
     before :func:`undo_appearance`), down-weighted by ``clipped_weight``; default: none."""
     images = [np.asarray(im, np.float32) for im in images]  # the bake's dtype: the extremes of float64 photos would
     # not round-trip through the float32 statistics of the photo-consistency pass
     base = trimesh.Trimesh(verts_n, faces, process=False)
     sizes = [(im.shape[1], im.shape[0]) for im in images]
-    side = atlas_size(base, cams, sizes, cfg)
+    tpu = texels_per_unit(base, cams, sizes, cfg)
     with ThreadPoolExecutor(1) as pool:  # the depth maps beside the atlas (xatlas releases the GIL), on a mesh of
         # their own (trimesh's caches are not thread-safe)
         deps = pool.submit(depth_maps, trimesh.Trimesh(verts_n, faces, process=False), cams, sizes)
-        vmap, nf, uvs = make_atlas(verts_n, faces, side, cfg.padding)
+        vmap, nf, uvs, side = make_atlas(verts_n, faces, tpu, cfg.padding, cfg.size)
         nv = verts_n[vmap]
         normals = base.vertex_normals[vmap]
         fid = rasterize_atlas(uvs, nf, side)
