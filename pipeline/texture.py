@@ -49,7 +49,7 @@ class TextureConfig:
     texel_density: float = 1.5
     """Texels per unit length on the object per photo pixel, where the photos see it best: the texture holds
     what the photos hold (400×300 photos need no 2048² atlas; 1.0 cost 0.16 dB held-out PSNR against 1.5 on the
-    book scene, 2048² gained 0.1 dB in 7× the time); 0: always ``size``."""
+    book scene, 2048² gained 0.1 dB in 7× the time); 0: the density that fills a ``size`` square."""
     padding: int = 4
     """Texels between charts in the atlas."""
     gutter: int = 8
@@ -138,7 +138,8 @@ def make_atlas(verts: np.ndarray, faces: np.ndarray, density: float, padding: in
     """xatlas at ``density`` texels per unit length (its atlas as large as that needs; re-charted at a density
     scaled to fit when its longer side falls outside [``min_side``, ``max_side``]) → (vmapping, faces into the new
     vertices, uvs in [0, 1] of a square texture, its side). The uvs keep xatlas's texel grid: a chart's texels and
-    padding are texels of the texture (a non-square atlas sits in the square's lower left)."""
+    padding are texels of the texture (a non-square atlas sits in the square's lower left); only an atlas still
+    past ``max_side`` after three tries is scaled down onto it."""
     import xatlas  # here, not at the top: the config tree imports this module
 
     co = xatlas.ChartOptions()
