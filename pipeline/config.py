@@ -9,6 +9,7 @@ The command-line options of every stage are generated from these dataclasses (th
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import field
@@ -68,9 +69,68 @@ def load_config(path: str | Path | None) -> Config:
     except yaml.YAMLError as exc:
         raise ValueError(f"{path}: not valid YAML ({exc})") from exc
     try:
-        return from_dict(Config, data)
+        cfg = from_dict(Config, data)
+        check_config(cfg)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{path}: {exc}") from exc
+    return cfg
+
+
+POSITIVE = frozenset({
+    "cameras.max_side_sfm", "cameras.max_side", "cameras.max_features", "cameras.min_track_length",
+    "cameras.radius_margin", "cameras.board_square_mm", "cameras.board_marker_mm", "cameras.final_error_ratio",
+    "masks.hull_res", "masks.stereo_scale", "masks.stereo_depths", "depth.min_track_length",
+    "train.iterations", "train.batch_rays", "train.n_steps", "train.n_steps_final",
+    "train.hull_res", "train.frame_margin", "train.checkpoint_every", "train.log_every", "train.field.base_res",
+    "train.field.plane_features", "train.field.hidden", "train.field.mlp_layers",
+    "mesh.resolution", "mesh.coarse_factor", "mesh.max_faces", "texture.size"})
+"""Options that must be above 0 (sizes, counts, resolutions, scales); every other number must be finite and ≥ 0
+(every default is: a 0 there switches a term or a step off)."""
+
+
+def _rule_broken(name: str, tp, value) -> str | None:
+    """What ``value`` of option ``name`` (type ``tp``) must be, when it is not; None when it is fine."""
+    positive = name in POSITIVE
+    if tp is bool:
+        return None if isinstance(value, bool) else "true or false"
+    if tp is int:
+        ok = isinstance(value, int) and not isinstance(value, bool) and value >= (1 if positive else 0)
+        return None if ok else "a whole number " + ("≥ 1" if positive else "≥ 0")
+    if tp is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and \
+            (value > 0 if positive else value >= 0)
+        return None if ok else "a finite number " + ("> 0" if positive else "≥ 0")
+    if tp is str:
+        return None if isinstance(value, str) else "text"
+    if typing.get_origin(tp) is typing.Literal:
+        return None if value in typing.get_args(tp) else "one of " + ", ".join(map(str, typing.get_args(tp)))
+    if typing.get_origin(tp) is tuple:
+        ok = isinstance(value, tuple) and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1
+                                              for v in value)
+        n = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        ok = ok and (Ellipsis in typing.get_args(tp) or len(value) == len(n))
+        return None if ok else "a list of whole numbers ≥ 1" + ("" if Ellipsis in typing.get_args(tp) else
+                                                                 f" ({len(n)} of them)")
+    return None
+
+
+def check_config(cfg, where: str = "") -> None:
+    """ValueError, one line naming the option, its value and what it must be, for an option of a config (the whole
+    :class:`Config` or a stage's section, ``where`` its prefix: ``"texture."``) of the wrong type or out of range
+    (:data:`POSITIVE`): a YAML preset can hold anything, and a negative size or a NaN would fail deep inside a
+    stage, after the stages before it have run."""
+    hints = typing.get_type_hints(type(cfg))
+    for f in dataclasses.fields(cfg):
+        name, value, tp = where + f.name, getattr(cfg, f.name), _resolve(hints[f.name])
+        if dataclasses.is_dataclass(tp):
+            if not isinstance(value, tp):
+                raise ValueError(f"{name}: expected a mapping of its options, got {value!r}")
+            check_config(value, name + ".")
+            continue
+        rule = _rule_broken(name, tp, value)
+        if rule is not None:
+            raise ValueError(f"--{name.replace('_', '-')} = {value!r}: must be {rule} (fix it on the command line "
+                             "or in the YAML preset)")
 
 
 def config_from_args(preset: str | Path | None, options: list[str]) -> Config:

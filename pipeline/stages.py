@@ -192,8 +192,12 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
     returns whether it ran. ``images``, ``masks_dir`` and ``given_cameras`` are the user's paths for the stages that
     read them; ``stop_after`` stops training early (tests of resuming). Raises StageError (one line: the file and
     the fix) on bad input."""
+    from .config import check_config
+
     p = _plan(name, workspace, config, images, masks_dir, given_cameras)
     stage, ws = p.stage, p.ws
+    if p.cfg is not None:
+        check_config(p.cfg, stage.section + ".")
     if stage.check is not None:
         stage.check(ws, p.src)
     for path, producer in stage.requires(ws):
@@ -219,6 +223,9 @@ def reconstruct(images: str | Path | None, workspace: str | Path, config: Config
     textured GLB. Without ``images`` the workspace must already hold images/, masks/ and cameras.npz (as
     ``python -m pipeline synth`` writes them); ``masks_dir`` gives user masks, ``given_cameras`` skips SfM (and needs
     ``images``)."""
+    from .config import Config, check_config
+
+    check_config(config or Config())  # every stage's options before the first stage runs
     ws = Workspace(workspace)
     if images is None and not ws.cameras.exists():
         raise StageError(f"{ws.root}: no photos given and no cameras.npz there; pass the photo folder (--images DIR)")

@@ -44,6 +44,65 @@ def test_bad_config_file_one_line_error(tmp_path, capsys):
     assert rc == 2 and "missing.yaml" in err and len(err.splitlines()) == 1
 
 
+@pytest.mark.parametrize("yaml_text, named", [
+    ("texture: {size: -5}\n", "--texture.size = -5: must be a whole number ≥ 1"),
+    ("mesh: {max_faces: 0}\n", "--mesh.max-faces = 0: must be a whole number ≥ 1"),
+    ("train: {iterations: many}\n", "--train.iterations = 'many': must be a whole number"),
+    ("train: {weights: {rgb: -1.0}}\n", "--train.weights.rgb = -1.0: must be a finite number ≥ 0"),
+    ("train: {field: {plane_res: [64, 0]}}\n", "--train.field.plane-res = (64, 0): must be a list of whole numbers"),
+    ("texture: {angle_power: .nan}\n", "--texture.angle-power = nan: must be a finite number ≥ 0"),
+    ("mesh: {frame: world}\n", "--mesh.frame = 'world': must be one of sfm, normalized"),
+    ("texture: {view_selection: 2}\n", "--texture.view-selection = 2: must be true or false"),
+])
+def test_out_of_range_option_in_a_preset_is_one_line(tmp_path, capsys, yaml_text, named):
+    """A YAML preset can hold any value: a wrong type, a negative size or a NaN is named with its option before
+    any stage runs (without the check, ``texture: {size: -5}`` reached the user after training as numpy's "negative
+    dimensions are not allowed")."""
+    preset = tmp_path / "bad.yaml"
+    preset.write_text(yaml_text)
+    ws = tmp_path / "ws"
+    rc = main(["reconstruct", str(ws), "--images", str(tmp_path), "--config", str(preset)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "bad.yaml" in err and named in err
+    assert not ws.exists()
+
+
+@pytest.mark.parametrize("argv, named", [
+    (["--texture.size", "0"], "--texture.size = 0"),
+    (["--texture.texel-density", "-1.5"], "--texture.texel-density = -1.5"),
+    (["--texture.angle-power", "inf"], "--texture.angle-power = inf"),
+])
+def test_out_of_range_option_on_the_command_line_is_one_line(tmp_path, capsys, argv, named):
+    rc = main(["texture", str(tmp_path / "ws"), *argv])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and err.startswith(f"error: {named}: must be")
+    assert not (tmp_path / "ws").exists()
+
+
+def test_reconstruct_checks_every_stage_before_the_first():
+    """The API too: a bad texture option stops reconstruct before the cameras stage, not after minutes of
+    training; every preset and the defaults pass; every option the check holds above 0 exists."""
+    import dataclasses
+    import typing
+
+    from pipeline.config import POSITIVE, check_config
+    from pipeline.stages import reconstruct
+
+    cfg = Config()
+    cfg = dataclasses.replace(cfg, texture=dataclasses.replace(cfg.texture, size=-1))
+    with pytest.raises(ValueError, match="texture.size"):
+        reconstruct(None, ROOT / "nowhere-this-is-never-created", cfg)
+    assert not (ROOT / "nowhere-this-is-never-created").exists()
+    for name in ("fast", "default", "balanced", "quality"):
+        check_config(load_config(ROOT / "configs" / f"{name}.yaml"))
+    for option in POSITIVE:
+        cls = Config
+        *sections, leaf = option.split(".")
+        for section in sections:
+            cls = typing.get_type_hints(cls)[section]
+        assert leaf in {f.name for f in dataclasses.fields(cls)}, option
+
+
 def test_mesh_without_model(tmp_path, capsys):
     rc = main(["mesh", str(tmp_path)])
     assert rc == 2 and "final.pt" in capsys.readouterr().err
