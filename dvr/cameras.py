@@ -146,36 +146,56 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     return K, R, t
 
 
+def _camera_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every array of the npz at ``path`` as float64 (ValueError naming the file: unreadable, corrupt, not numbers)."""
+    try:
+        with np.load(path) as data:
+            raw = {k: data[k] for k in data.files}  # members are read (and CRC-checked) here, not later
+    except Exception as exc:  # noqa: BLE001 - zipfile, pickle and OS errors alike: the file is not a camera file
+        raise ValueError(f"{path}: cannot read camera file ({type(exc).__name__}); rerun the cameras stage "
+                         "(--force) or give an npz with world_mat_i") from exc
+    arrays = {}
+    for k, a in raw.items():
+        try:
+            arrays[k] = np.asarray(a, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: {k} holds {a.dtype} values, not numbers; write K·[R|t] per view as "
+                             "world_mat_0, world_mat_1, ...") from exc
+    return arrays
+
+
 def load_cameras(path: str | Path, n_views: int | None = None) -> Cameras:
     """Read an IDR/DVR/NeuS-style ``cameras.npz`` (``world_mat_i`` and ``scale_mat`` or ``scale_mat_i``)."""
     path = Path(path)
-    try:
-        data = np.load(path)
-    except Exception as exc:  # noqa: BLE001
-        raise ValueError(f"{path}: cannot read camera file ({exc}); expected an npz with world_mat_i") from exc
-    keys = [k for k in data.files if k.startswith("world_mat_") and not k.startswith("world_mat_inv")]
+    data = _camera_arrays(path)
+    keys = [k for k in data if k.startswith("world_mat_") and not k.startswith("world_mat_inv")]
     if not keys:
         raise ValueError(f"{path}: no world_mat_i entries; write K·[R|t] per view as world_mat_0, world_mat_1, ...")
+    odd = [k for k in keys if not k.rsplit("_", 1)[1].isdigit()]
+    if odd:
+        raise ValueError(f"{path}: {odd[0]} is no camera index; name the views world_mat_0, world_mat_1, ...")
     idx = sorted(int(k.rsplit("_", 1)[1]) for k in keys)
     if idx != list(range(len(idx))):
         raise ValueError(f"{path}: world_mat indices must be 0..N-1 without gaps, got {idx[:5]}...")
     if n_views is not None and len(idx) != n_views:
         raise ValueError(f"{path}: holds {len(idx)} cameras but the workspace has {n_views} images")
-    if "scale_mat" in data.files:
-        scale = data["scale_mat"]
-    elif "scale_mat_0" in data.files:
-        scale = data["scale_mat_0"]
-    else:
-        scale = np.eye(4)
-    scale = np.asarray(scale, dtype=np.float64)
-    ground = plane_in_frame(np.asarray(data["ground_plane"], float), scale) if "ground_plane" in data.files else None
+    scale = data.get("scale_mat", data.get("scale_mat_0", np.eye(4)))
+    if scale.shape != (4, 4) or not np.isfinite(scale).all() or abs(np.linalg.det(scale)) < 1e-300:
+        raise ValueError(f"{path}: scale_mat must be a finite, invertible 4x4 matrix (normalized → world), got shape "
+                         f"{scale.shape}")
+    ground = data.get("ground_plane")
+    if ground is not None and (ground.size != 4 or not np.isfinite(ground).all()):
+        raise ValueError(f"{path}: ground_plane must be 4 finite numbers (a, b, c, d of ax + by + cz + d = 0)")
+    ground = plane_in_frame(ground.reshape(4), scale) if ground is not None else None
     Ks, Rs, ts = [], [], []
     for i in idx:
-        W = np.asarray(data[f"world_mat_{i}"], dtype=np.float64)
+        W = data[f"world_mat_{i}"]
         if W.shape not in ((3, 4), (4, 4)):
             raise ValueError(f"{path}: world_mat_{i} has shape {W.shape}, expected 3x4 or 4x4")
-        P = W[:3, :4] @ scale
-        K, R, t = decompose_projection(P)
+        try:
+            K, R, t = decompose_projection(W[:3, :4] @ scale)
+        except ValueError as exc:
+            raise ValueError(f"{path}: world_mat_{i}: {exc}; give K·[R|t] of that view") from exc
         Ks.append(K), Rs.append(R), ts.append(t)
     return Cameras(np.stack(Ks), np.stack(Rs), np.stack(ts), scale, ground)
 

@@ -160,8 +160,15 @@ def load_scene(ws: Path, device: torch.device, use_depth: bool = True, views: li
             f = depth_dir / f"{p.stem}.npz"
             if not f.exists():
                 continue
-            z = np.load(f)
-            uv, d = np.asarray(z["uv"], np.float32).reshape(-1, 2), np.asarray(z["depth"], np.float32).reshape(-1)
+            try:
+                with np.load(f) as z:
+                    uv = np.asarray(z["uv"], np.float32).reshape(-1, 2)
+                    d = np.asarray(z["depth"], np.float32).reshape(-1)
+            except Exception as exc:  # noqa: BLE001 - a truncated npz (zipfile, EOF), a missing key, not numbers
+                raise ValueError(f"{f}: unreadable sparse depth ({type(exc).__name__}); rerun the depth stage "
+                                 "(depth --force)") from exc
+            if len(uv) != len(d):
+                raise ValueError(f"{f}: {len(uv)} pixels for {len(d)} depths; rerun the depth stage (depth --force)")
             ok = np.isfinite(d) & (d > 0) & np.isfinite(uv).all(1)
             # a sparse depth is object evidence only where the mask agrees (table points inside the sphere)
             h, w = masks[i].shape

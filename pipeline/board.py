@@ -268,27 +268,28 @@ def board_support(pts: np.ndarray, centers: np.ndarray, target: np.ndarray, tole
     return SupportPlane(up, 0.0, int((np.abs(pts[:, 2]) < tol).sum()), tol, height)
 
 
-def _read_views(folder: Path, names: list[str], Ks: np.ndarray, sizes: np.ndarray):
-    """The photos SfM saw (``folder/<name>.png``, full resolution) and their intrinsics (``Ks`` are for the
-    training size ``sizes``)."""
+def _read_views(folder: Path, files: list[str], Ks: np.ndarray, sizes: np.ndarray):
+    """The photos SfM saw (``folder/<file>``, full resolution: COLMAP's undistorter keeps each image's name, ours
+    ``<stem>.png``, a given model's its own) and their intrinsics (``Ks`` are for the training size ``sizes``)."""
     images, K_full = [], []
-    for name, K, (w, h) in zip(names, Ks, sizes):
-        img = cv2.imread(str(folder / f"{name}.png"), cv2.IMREAD_GRAYSCALE)
+    for file, K, (w, h) in zip(files, Ks, sizes):
+        img = cv2.imread(str(folder / file), cv2.IMREAD_GRAYSCALE)
         if img is None:
-            raise StageError(f"{folder / name}.png: unreadable; rerun the cameras stage with --force")
+            raise StageError(f"{folder / file}: unreadable; rerun the cameras stage with --force")
         images.append(img)
         K_full.append(np.diag([img.shape[1] / w, img.shape[0] / h, 1.0]) @ K)
     return images, np.stack(K_full)
 
 
-def use_board(root: Path, undistorted: Path, names: list[str], Ks, Rs, ts, sizes, pts, cfg):
-    """The cameras stage's hook: find the board in the undistorted photos; when found, move cameras, points and the
-    undistorted model into its frame (metres) and write ``board.json``. Returns (R, t, points, fit or None)."""
+def use_board(root: Path, undistorted: Path, files: list[str], Ks, Rs, ts, sizes, pts, cfg):
+    """The cameras stage's hook: find the board in the undistorted photos (``files``: their names in
+    ``undistorted/images``); when found, move cameras, points and the undistorted model into its frame (metres) and
+    write ``board.json``. Returns (R, t, points, fit or None)."""
     (root / "board.json").unlink(missing_ok=True)
     if not cfg.board:
         return Rs, ts, pts, None
     spec = spec_from_config(cfg)
-    images, K_full = _read_views(undistorted / "images", names, Ks, sizes)
+    images, K_full = _read_views(undistorted / "images", files, Ks, sizes)
     try:
         fit = locate(images, [K @ np.concatenate([R, t[:, None]], 1) for K, R, t in zip(K_full, Rs, ts)], spec)
     except BoardMismatch as exc:
@@ -298,8 +299,8 @@ def use_board(root: Path, undistorted: Path, names: list[str], Ks, Rs, ts, sizes
         return Rs, ts, pts, None
     Rs, ts, pts = to_board_frame(fit, Rs, ts, pts)
     transform_model(fit, undistorted / "sparse")
-    (root / "board.json").write_text(json.dumps(fit.info(len(names)), indent=1))
-    print(f"cameras: board: {spec.describe()} seen in {fit.views}/{len(names)} views, {fit.corners} corners, "
+    (root / "board.json").write_text(json.dumps(fit.info(len(files)), indent=1))
+    print(f"cameras: board: {spec.describe()} seen in {fit.views}/{len(files)} views, {fit.corners} corners, "
           f"{fit.scale:.4g} m per SfM unit (corners fit to {fit.residual_mm:.2f} mm) → cameras, points and mesh in "
           "metres, origin at the board's centre, z up")
     return Rs, ts, pts, fit

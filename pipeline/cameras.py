@@ -19,7 +19,14 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from dvr.cameras import decompose_projection, project_points, save_cameras, sphere_frame, transform_points
+from dvr.cameras import (
+    decompose_projection,
+    load_cameras,
+    project_points,
+    save_cameras,
+    sphere_frame,
+    transform_points,
+)
 
 from .board import board_support, spec_from_config, use_board
 from .board_poses import (
@@ -507,7 +514,8 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
         Ks.append(K), Rs.append(M[:3, :3]), ts.append(M[:3, 3]), sizes.append((nw, nh)), kept.append(name)
     Ks, Rs, ts, sizes = np.stack(Ks), np.stack(Rs), np.stack(ts), np.asarray(sizes, float)
     pts, cols = model_points(urec, cfg.min_track_length)
-    Rs, ts, pts, fit = use_board(ws.root, und, kept, Ks, Rs, ts, sizes, pts, cfg)  # a printed board: metres
+    Rs, ts, pts, fit = use_board(ws.root, und, [by_name[n].name for n in kept], Ks, Rs, ts, sizes, pts,
+                                 cfg)  # a printed board: metres
     centers = -np.einsum("nji,nj->ni", Rs, ts)
     Ps = Ks @ np.concatenate([Rs, ts[:, :, None]], 2)
     target = axes_convergence(centers, Rs[:, 2, :])
@@ -571,10 +579,10 @@ def export_board_cameras(ws: Workspace, photos: list[Path], cfg: CamerasConfig, 
 def import_cameras(ws: Workspace, photos: list[Path], cam_file: Path, cfg: CamerasConfig) -> dict:
     """Use given cameras (IDR/NeuS/DVR cameras.npz, one world_mat per photo in sorted order): skip SfM."""
     try:
+        n = len(load_cameras(cam_file).K)  # every entry checked: indices, shapes, numbers, decomposable
         z = np.load(cam_file)
-        n = len([k for k in z.files if k.startswith("world_mat_") and not k.startswith("world_mat_inv")])
-    except Exception as exc:  # noqa: BLE001
-        raise StageError(f"{cam_file}: cannot read cameras ({exc}); pass an IDR/DVR cameras.npz") from exc
+    except ValueError as exc:  # load_cameras' one line names the file, the entry and what to write
+        raise StageError(str(exc)) from exc
     if n != len(photos):
         raise StageError(f"{cam_file}: {n} cameras for {len(photos)} photos; give one world_mat_i per photo")
     scale = z["scale_mat"] if "scale_mat" in z.files else z["scale_mat_0"] if "scale_mat_0" in z.files else None

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from dvr.cameras import Cameras, load_cameras, plane_height, project_points, sphere_bounds, to_normalized
-from dvr.data import list_images, pad_stack, read_mask
+from dvr.data import IMAGE_EXTS, list_images, pad_stack, read_mask
 from dvr.hull import grid_points, hull_logits, mask_lookup
 
 from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
@@ -103,7 +103,12 @@ def import_user_masks(ws: Workspace, names: list[str], sizes: list[tuple[int, in
     resized to the images (``sizes``: (width, height) per name) into masks/; confidence 1 each."""
     if not mask_dir.is_dir():
         raise StageError(f"{mask_dir}: not a folder; pass --masks DIR with one mask per photo (same file name)")
-    files = {p.stem: p for p in mask_dir.iterdir() if p.is_file()}
+    files = {}
+    for p in sorted(mask_dir.iterdir()):  # image files only: a labelme .json beside its mask is not a mask
+        if p.is_file() and p.suffix.lower() in IMAGE_EXTS and not p.name.startswith("."):
+            if p.stem in files:
+                raise StageError(f"{mask_dir}: {files[p.stem].name} and {p.name} are masks of one photo; keep one")
+            files[p.stem] = p
     missing = [n for n in names if n not in files]
     if missing:
         raise StageError(f"{mask_dir}: no mask for {', '.join(missing[:5])}{'...' if len(missing) > 5 else ''}; "
@@ -113,6 +118,8 @@ def import_user_masks(ws: Workspace, names: list[str], sizes: list[tuple[int, in
         m = cv2.imread(str(files[n]), cv2.IMREAD_GRAYSCALE)  # EXIF orientation applied, like the photos
         if m is None:
             raise StageError(f"{files[n]}: unreadable mask; save it as PNG (0 = background, 255 = object)")
+        if m.max() == 1:  # numpy's and PIL's 0/1 masks: every pixel would be background
+            raise StageError(f"{files[n]}: mask of 0 and 1; save the object as 255 (0 = background, 255 = object)")
         mid = ((m > 32) & (m < 223)).mean()
         if mid > 0.05:
             raise StageError(f"{files[n]}: {100 * mid:.0f} % of pixels are neither black nor white; save a binary mask")

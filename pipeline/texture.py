@@ -525,6 +525,19 @@ def photos_for_bake(paths: list[Path], looks: Path, cfg: TextureConfig):
     return images, field_gain, clipped
 
 
+def read_clean_mesh(path: Path) -> trimesh.Trimesh:
+    """The mesh stage's ``clean.ply`` (StageError naming it: unreadable, no triangles, empty)."""
+    try:
+        m = trimesh.load(path, file_type="ply", process=False)
+    except Exception as e:  # noqa: BLE001 - trimesh raises what its parser meets (ValueError, KeyError, struct.error)
+        raise StageError(f"{path}: unreadable mesh ({type(e).__name__}); rerun the mesh stage (mesh --force)") from e
+    if not isinstance(m, trimesh.Trimesh):
+        raise StageError(f"{path}: holds no triangles ({type(m).__name__}); rerun the mesh stage (mesh --force)")
+    if len(m.faces) == 0:
+        raise StageError(f"{path}: empty mesh; retrain (train --force) or check the masks")
+    return m
+
+
 def run(job: Job) -> Done:
     """Stage ``texture`` (called by :func:`pipeline.stages.run_stage`): the clean mesh UV-unwrapped and baked from
     the photos (the texture field for texels no photo sees) → mesh/textured.obj/.mtl/.png and mesh/textured.glb."""
@@ -535,9 +548,7 @@ def run(job: Job) -> Done:
     paths = list_images(ws.images)
     cams = load_cameras(ws.cameras, n_views=len(paths))
     S = cams.scale_mat
-    m = trimesh.load(clean, process=False)
-    if len(m.faces) == 0:
-        raise StageError(f"{clean}: empty mesh; retrain (train --force) or check the masks")
+    m = read_clean_mesh(clean)
     try:
         mesh_frame = json.loads((ws.stages / "mesh.json").read_text()).get("frame", "sfm")
     except (OSError, ValueError):

@@ -19,7 +19,11 @@ def _fresh_or_resume(job: Job) -> None:
     ws = job.ws
     cfg_file = ws.model / "config.json"
     inputs_time = max(newest_mtime(p) for p in job.inputs)
-    old = json.loads(cfg_file.read_text()) if cfg_file.exists() else {}
+    try:  # a file a killed run or a hand left unreadable is no record of a checkpoint: start afresh
+        old = json.loads(cfg_file.read_text()) if cfg_file.exists() else {}
+    except (OSError, ValueError):
+        old = {}
+    old = old if isinstance(old, dict) else {}
     if job.force or old.get("hash") != job.config_hash or old.get("inputs_time") != inputs_time:
         # another config, or new masks / images / cameras: that checkpoint is not ours to resume
         shutil.rmtree(ws.model, ignore_errors=True)

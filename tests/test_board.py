@@ -95,7 +95,7 @@ def test_no_board_changes_nothing(tmp_path):
     Ks = np.stack([np.array([[300.0, 0, 200], [0, 300, 150], [0, 0, 1]])] * 3)
     Rs, ts, pts = np.stack([np.eye(3)] * 3), np.array([[0, 0, 3.0]] * 3), np.zeros((5, 3))
     sizes = np.array([[400, 300]] * 3, float)
-    R2, t2, p2, fit = use_board(tmp_path, und, names, Ks, Rs, ts, sizes, pts, CamerasConfig())
+    R2, t2, p2, fit = use_board(tmp_path, und, [f"{n}.png" for n in names], Ks, Rs, ts, sizes, pts, CamerasConfig())
     assert fit is None and R2 is Rs and t2 is ts and p2 is pts
     assert not (tmp_path / "board.json").exists() and mesh_units(tmp_path, "sfm") == {}
     assert locate([np.zeros((300, 400), np.uint8)] * 3, [np.eye(3, 4)] * 3, SPEC) is None

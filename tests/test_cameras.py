@@ -123,6 +123,38 @@ def test_load_errors(tmp_path):
         load_cameras(tmp_path / "d.npz", n_views=2)
 
 
+def _corrupt_member(path):
+    """The npz at ``path`` with one byte of its first member's data flipped (the zip's CRC no longer matches)."""
+    raw = bytearray(path.read_bytes())
+    raw[200] ^= 0xFF
+    path.write_bytes(bytes(raw))
+
+
+@pytest.mark.parametrize("arrays, words", [
+    ({"world_mat_0": np.eye(4), "world_mat_a": np.eye(4)}, "world_mat_a is no camera index"),
+    ({"world_mat_0": np.eye(4), "scale_mat": np.eye(3)}, "scale_mat must be a finite, invertible 4x4"),
+    ({"world_mat_0": np.eye(4), "scale_mat": np.zeros((4, 4))}, "scale_mat must be a finite, invertible 4x4"),
+    ({"world_mat_0": np.eye(4), "ground_plane": np.ones(3)}, "ground_plane must be 4 finite numbers"),
+    ({"world_mat_0": np.array([["a"] * 4] * 3)}, "world_mat_0 holds <U1 values, not numbers"),
+    ({"world_mat_0": np.full((3, 4), np.nan)}, "world_mat_0: projection matrix contains NaN"),
+    ({"world_mat_0": np.zeros((3, 4))}, "world_mat_0: projection matrix is singular"),
+    ("corrupt", "cannot read camera file (BadZipFile)"),
+])
+def test_load_errors_name_the_file_and_the_entry(tmp_path, arrays, words):
+    """A hand-made or damaged cameras.npz: one ValueError naming the file and the entry. Before, these gave a
+    BadZipFile traceback (a member is read lazily, after the guarded np.load), int()'s, numpy's matmul or
+    decompose_projection's message without the file."""
+    path = tmp_path / "cameras.npz"
+    if arrays == "corrupt":
+        np.savez(path, world_mat_0=np.eye(4) + np.arange(16).reshape(4, 4))
+        _corrupt_member(path)
+    else:
+        np.savez(path, **arrays)
+    with pytest.raises(ValueError) as err:
+        load_cameras(path)
+    assert str(path) in str(err.value) and words in str(err.value), str(err.value)
+
+
 def test_reframe_keeps_projections_and_maps_depths():
     """A camera in a tighter frame (x = c + r·x') projects x' where the original projects x; scale_mat
     composes; ray depths scale by 1/r."""

@@ -4,6 +4,7 @@ import shutil
 
 import cv2
 import numpy as np
+import pytest
 import torch
 
 from dvr.cameras import load_cameras, save_cameras
@@ -81,3 +82,17 @@ def test_sampler_stays_inside_each_views_own_pixels(small_ws, tmp_path):
     assert len(pts) > 20 and not seen[0].any()
     assert outside_hull(pts, data.P, data.masks, sizes=data.sizes).float().mean() < 0.1
     assert outside_hull(pts, data.P, data.masks).all()  # without the sizes the padding would carve them
+
+
+def test_truncated_sparse_depth_names_its_file(small_ws, tmp_path):
+    """A depth/<view>.npz a killed depth stage left truncated (np.savez is not atomic): one ValueError naming it
+    and the fix (was: a zipfile.BadZipFile traceback through the train stage)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(small_ws, ws)
+    depth = sorted((ws / "depth").glob("*.npz"))[0]
+    depth.write_bytes(depth.read_bytes()[:40])
+    with pytest.raises(ValueError, match=rf"{depth.name}: unreadable sparse depth \(BadZipFile\); rerun the depth"):
+        load_scene(ws, torch.device("cpu"))
+    np.savez(depth, uv=np.zeros((3, 2)))  # no depths
+    with pytest.raises(ValueError, match="unreadable sparse depth"):
+        load_scene(ws, torch.device("cpu"))

@@ -121,3 +121,23 @@ def test_report_says_where_the_masks_footprint_came_from(tmp_path):
     assert "no footprint of the object could be built" in said[False]
     assert "automatic masks" not in said[None]
     assert not any("(True)" in s or "masks' hull)" in s for s in said.values())
+
+
+def test_unreadable_training_record_starts_afresh(tmp_path):
+    """model/config.json says which config a checkpoint belongs to; left empty or damaged (a killed run, a hand),
+    it is no record: the checkpoint is discarded and training starts afresh (was: json's "Expecting value" as the
+    error, before the --force that would have cleared it)."""
+    import json
+
+    from dvr.trainer import TrainConfig
+    from pipeline.train import _fresh_or_resume
+    from pipeline.workspace import Job, Workspace
+
+    ws = Workspace(tmp_path / "ws")
+    ws.model.mkdir(parents=True)
+    (ws.model / "checkpoint.pt").write_bytes(b"a checkpoint of unknown config")
+    (ws.model / "config.json").write_text("")
+    (tmp_path / "input.png").write_bytes(b"x")
+    _fresh_or_resume(Job(ws, TrainConfig(), config_hash="abc", inputs=[tmp_path / "input.png"]))
+    assert not (ws.model / "checkpoint.pt").exists()
+    assert json.loads((ws.model / "config.json").read_text())["hash"] == "abc"

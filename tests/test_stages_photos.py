@@ -246,6 +246,29 @@ def test_given_colmap_model_skips_sfm(photo_ws, tmp_path, capsys):
     assert "not a COLMAP sparse model" in capsys.readouterr().err
 
 
+def test_given_colmap_model_of_jpeg_photos(photo_ws, tmp_path):
+    """A model made from JPEGs (a user's own COLMAP run): COLMAP's undistorter keeps each image's name, and the
+    board search read ``<stem>.png`` there, so every such model failed ("unreadable; rerun the cameras stage")."""
+    import pycolmap
+
+    syn, ws0 = photo_ws
+    photos = tmp_path / "jpeg"
+    photos.mkdir()
+    rec = pycolmap.Reconstruction(ws0 / "sfm" / "sparse" / "best")
+    for i in rec.reg_image_ids():
+        stem = rec.image(i).name.rsplit(".", 1)[0]
+        cv2.imwrite(str(photos / f"{stem}.jpg"), cv2.imread(str(syn / "images" / f"{stem}.png")))
+        rec.image(i).name = f"{stem}.jpg"
+    model = tmp_path / "model"
+    model.mkdir()
+    rec.write(model)
+    ws = tmp_path / "given_jpeg_model"
+    run_stage("cameras", ws, images=photos, given_cameras=model)
+    a, b = load_cameras(ws / "cameras.npz"), load_cameras(ws0 / "cameras.npz")
+    assert np.allclose(a.P, b.P, atol=1e-6)
+    assert sorted(p.name for p in (ws / "images").iterdir()) == sorted(p.name for p in (ws0 / "images").iterdir())
+
+
 def test_normalization_ignores_background_points():
     rng = np.random.default_rng(0)
     obj = rng.normal(size=(500, 3)) * 0.2 + [1.0, 2.0, 3.0]
@@ -288,7 +311,16 @@ def test_user_masks_validated(photo_ws, tmp_path, capsys):
     cv2.imwrite(str(tmp_path / "m" / "000003.png"), np.full((240, 320), 128, np.uint8))
     assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2
     assert "neither black nor white" in capsys.readouterr().err
+    ones = (cv2.imread(str(syn / "gt" / "masks" / "000003.png"), 0) > 127).astype(np.uint8)  # numpy's 0/1 mask
+    cv2.imwrite(str(tmp_path / "m" / "000003.png"), ones)
+    assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2  # was: every pixel background
+    assert "000003.png: mask of 0 and 1; save the object as 255" in capsys.readouterr().err
     shutil.copy(syn / "gt" / "masks" / "000003.png", tmp_path / "m" / "000003.png")
+    cv2.imwrite(str(tmp_path / "m" / "000003.jpg"), ones * 255)  # a second mask of the same photo
+    assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2  # was: whichever came last
+    assert "000003.jpg and 000003.png are masks of one photo" in capsys.readouterr().err
+    (tmp_path / "m" / "000003.jpg").unlink()
+    (tmp_path / "m" / "000003.json").write_text("{}")  # a labelme file beside its mask is not a mask
     assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 0
     m = cv2.imread(str(ws / "masks" / "000003.png"), 0)
     assert m.shape == cv2.imread(str(ws / "images" / "000003.png"), 0).shape
@@ -547,3 +579,25 @@ def test_given_cameras_survive_a_failed_triangulation(small_ws, tmp_path, monkey
     assert not (ws / "sfm").exists()
     a, b = load_cameras(ws / "cameras.npz"), load_cameras(small_ws / "cameras.npz")
     assert np.allclose(a.centers, b.centers) and np.allclose(a.scale_mat, b.scale_mat)
+
+
+def test_given_cameras_file_checked_entry_by_entry(tmp_path, capsys):
+    """A given cameras.npz with a broken entry stops the cameras stage with one line naming the file and the entry
+    (was: decompose_projection's message without either, or a KeyError traceback for a gap in the indices)."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        cv2.imwrite(str(photos / f"{i}.png"), rng.integers(0, 255, (48, 64, 3), np.uint8))
+    P = np.array([[50.0, 0, 32, 0], [0, 50, 24, 0], [0, 0, 1, 3]])
+    for bad, words in ((np.zeros((3, 4)), "world_mat_1: projection matrix is singular"),
+                       (np.eye(3), "world_mat_1 has shape (3, 3)")):
+        np.savez(tmp_path / "cameras.npz", world_mat_0=P, world_mat_1=bad, world_mat_2=P)
+        rc = main(["cameras", str(tmp_path / "ws"), "--images", str(photos), "--given-cameras",
+                   str(tmp_path / "cameras.npz")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and len(err) == 1 and str(tmp_path / "cameras.npz") in err[0] and words in err[0], err
+    np.savez(tmp_path / "cameras.npz", world_mat_0=P, world_mat_2=P, world_mat_3=P)  # a photo's entry deleted
+    assert main(["cameras", str(tmp_path / "ws"), "--images", str(photos), "--given-cameras",
+                 str(tmp_path / "cameras.npz")]) == 2
+    assert "indices must be 0..N-1 without gaps" in capsys.readouterr().err

@@ -802,3 +802,21 @@ def test_atlas_texels_are_texture_texels():
     vmap, nf, uvs, side = make_atlas(mesh.vertices, mesh.faces, 400.0, 4, 512)  # would need ~2400 texels
     assert 0.9 * 512 <= side <= 512 and uvs.max() <= 1
     assert _texels_per_length(uvs, nf, mesh.vertices[vmap], side) < 0.25 * 400
+
+
+def test_unreadable_clean_mesh_is_one_line(tmp_path):
+    """clean.ply is the texture stage's input, and a user may edit it: a points-only PLY was an AttributeError
+    traceback ('PointCloud' object has no attribute 'faces'), a damaged one trimesh's own message."""
+    from pipeline.texture import read_clean_mesh
+    from pipeline.workspace import StageError
+
+    path = tmp_path / "clean.ply"
+    trimesh.PointCloud(np.random.default_rng(0).normal(size=(10, 3))).export(path)
+    with pytest.raises(StageError, match=r"clean.ply: holds no triangles \(PointCloud\); rerun the mesh stage"):
+        read_clean_mesh(path)
+    path.write_bytes(b"not a ply at all")
+    with pytest.raises(StageError, match="clean.ply: unreadable mesh"):
+        read_clean_mesh(path)
+    box = trimesh.creation.box()
+    box.export(path)
+    assert len(read_clean_mesh(path).faces) == 12
