@@ -106,7 +106,7 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
                                        to_sfm(cams.centers[i], cams.scale_mat), w, h)
             mp = mask_dir / f"{paths[i].stem}.png"
             m = read_mask(mp) > 0 if mp.exists() else hit
-            m = m | hit
+            m = m | hit if m.shape == hit.shape else hit  # masks of another image size (images/ redone): the mesh
             p = masked_psnr(img, photo, m)
             pair = (np.concatenate([photo, img], 1) * 255).round().astype(np.uint8)
             if out_dir is not None:
@@ -196,7 +196,9 @@ def build(ws: Workspace, stats: dict | None = None) -> str:
     secs = ws.seconds()
     stamps = {}
     for p in sorted(ws.stages.glob("*.json")) if ws.stages.exists() else []:
-        stamps[p.stem] = json.loads(p.read_text())
+        stamp = ws.stamp(p.stem)  # None for a damaged stamp: that stage counts as not done
+        if stamp is not None:
+            stamps[p.stem] = stamp
     rep = ws.root / "report"
     rep.mkdir(exist_ok=True)
     parts = [f"<h1>Reconstruction report: {html.escape(ws.root.name)}</h1>",

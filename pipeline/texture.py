@@ -423,13 +423,18 @@ def upright(cams: Cameras, frame: str) -> tuple[np.ndarray, str]:
 
 def read_textured(path: Path) -> tuple[trimesh.Trimesh, np.ndarray]:
     """The textured mesh of a ``textured.glb`` in the mesh stage's frame (its node's upright transform not applied)
-    and its texture (float RGB)."""
-    scene = trimesh.load(path)
-    geoms = list(scene.geometry.values()) if isinstance(scene, trimesh.Scene) else [scene]
-    if len(geoms) != 1:
-        raise ValueError(f"{path}: expected one mesh, found {len(geoms)}")
-    tm = geoms[0]
-    return tm, np.asarray(tm.visual.material.baseColorTexture.convert("RGB"), np.float32) / 255.0
+    and its texture (float RGB); StageError naming it when it is damaged (a killed or interrupted write) or not ours."""
+    try:
+        scene = trimesh.load(path, file_type="glb")
+        geoms = list(scene.geometry.values()) if isinstance(scene, trimesh.Scene) else [scene]
+        texture = geoms[0].visual.material.baseColorTexture.convert("RGB") if len(geoms) == 1 else None
+    except Exception as e:  # noqa: BLE001 - trimesh and PIL raise what they meet (IndexError, JSON, struct errors)
+        raise StageError(f"{path}: unreadable GLB ({type(e).__name__}); rerun the texture stage (texture --force)") \
+            from e
+    if texture is None:
+        raise StageError(f"{path}: expected one textured mesh, found {len(geoms)} meshes; rerun the texture stage "
+                         "(texture --force)")
+    return geoms[0], np.asarray(texture, np.float32) / 255.0
 
 
 GLTF_CLAMP_SAMPLER = {"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}

@@ -141,3 +141,45 @@ def test_unreadable_training_record_starts_afresh(tmp_path):
     _fresh_or_resume(Job(ws, TrainConfig(), config_hash="abc", inputs=[tmp_path / "input.png"]))
     assert not (ws.model / "checkpoint.pt").exists()
     assert json.loads((ws.model / "config.json").read_text())["hash"] == "abc"
+
+
+def test_report_skips_a_damaged_stamp(tmp_path):
+    """A stage's stamp left empty (disk full, a hand) counts as not done everywhere else; the report read it with
+    json.loads and stopped on json's "Expecting value"."""
+    import json
+
+    from pipeline.report import build
+    from pipeline.workspace import Workspace
+
+    ws = Workspace(tmp_path)
+    ws.stages.mkdir(parents=True)
+    (ws.stages / "train.json").write_text("")
+    (ws.stages / "cameras.json").write_text(json.dumps({"seconds": 3.0}))
+    page = build(ws)
+    assert "<h1>Reconstruction report" in page and "Stages" in page
+
+
+def test_report_renders_beside_masks_of_another_size(small_ws, tmp_path):
+    """images/ redone at another size (cameras --force --cameras.max-side …) leaves masks/ of the old size until
+    the masks stage runs again; the report's renders then score over the mesh's own pixels (was: numpy's "operands
+    could not be broadcast together")."""
+    import cv2
+    import numpy as np
+    import trimesh
+
+    from pipeline.report import renders
+    from pipeline.texture import export_textured
+    from pipeline.workspace import Workspace
+
+    root = tmp_path / "ws"
+    shutil.copytree(small_ws, root)
+    ws = Workspace(root)
+    for folder in (root / "masks", root / "gt" / "heldout" / "masks"):
+        for m in folder.glob("*.png"):
+            cv2.imwrite(str(m), np.full((7, 9), 255, np.uint8))
+    box = trimesh.creation.box(extents=(0.5, 0.5, 0.5))
+    uvs = np.random.default_rng(0).uniform(0.1, 0.9, (len(box.vertices), 2))
+    ws.mesh.mkdir(exist_ok=True)
+    export_textured(ws.mesh, box.vertices, box.faces, uvs, np.full((16, 16, 3), 0.5, np.float32), np.eye(4))
+    out = renders(ws)
+    assert out and all(np.isfinite(psnr) for _, _, psnr in out)

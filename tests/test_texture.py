@@ -210,6 +210,16 @@ def test_outputs_load(baked, tmp_path):
     ms = pymeshlab.MeshSet()
     ms.load_new_mesh(str(tmp_path / "textured.obj"))
     assert ms.current_mesh().face_number() == len(nf)
+    # a GLB a killed or interrupted write left (the report reads it): one line naming it (was: numpy's "index 0 is
+    # out of bounds" traceback for an empty file, json's message for a truncated one)
+    from pipeline.workspace import StageError
+
+    glb = tmp_path / "textured.glb"
+    whole = glb.read_bytes()
+    for damaged in (b"", whole[: len(whole) // 3]):
+        glb.write_bytes(damaged)
+        with pytest.raises(StageError, match=r"textured.glb: unreadable GLB \(\w+\); rerun the texture stage"):
+            read_textured(glb)
     assert ms.current_mesh().has_wedge_tex_coord() or ms.current_mesh().has_vertex_tex_coord()
 
 
