@@ -67,5 +67,6 @@ def downscale(img: np.ndarray, max_side: int) -> np.ndarray:
     h, w = img.shape[:2]
     s = min(1.0, max_side / max(h, w))
     if s < 1.0:
-        img = cv2.resize(img, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+        img = cv2.resize(img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)  # a
+        # panorama strip's short side would round to 0 (OpenCV's "inv_scale_x > 0" assertion)
     return img

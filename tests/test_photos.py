@@ -83,3 +83,12 @@ def test_duplicate_stems_are_one_clear_error(tmp_path):
     (folder / "IMG_1.heic").unlink()
     ok, skipped = list_photos(folder)
     assert [p.name for p in ok] == ["IMG_1.jpg", "IMG_2.png"] and skipped == []
+
+
+def test_downscale_keeps_a_strip_one_pixel_high():
+    """A 4096×1 strip (a panorama slice in the folder) at 400 px: 400×1, not OpenCV's assertion on a side of 0."""
+    from pipeline.photos import downscale
+
+    strip = np.zeros((1, 4096, 3), np.uint8)
+    assert downscale(strip, 400).shape == (1, 400, 3)
+    assert downscale(np.zeros((300, 400, 3), np.uint8), 400).shape == (300, 400, 3)  # never upscaled, untouched
