@@ -18,6 +18,7 @@ from PIL import Image
 from dvr.cameras import Cameras, load_cameras, plane_height, to_normalized
 from dvr.data import list_images
 
+from .sfm import read_stage_model
 from .support import GROUND_BAND
 from .workspace import Done, Job
 
@@ -64,9 +65,7 @@ def run(job: Job) -> Done:
     if not model.exists():
         print(f"depth: no SfM model ({model}; cameras were given), no sparse depth written")
         return Done({"points": 0})
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(model)
+    rec = read_stage_model(model)
     cams = load_cameras(ws.cameras, n_views=len(paths))
     ws.depth.mkdir(parents=True)
     by_name = {rec.image(i).name.rsplit(".", 1)[0]: rec.image(i) for i in rec.reg_image_ids()}

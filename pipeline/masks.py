@@ -41,6 +41,7 @@ from dvr.hull import grid_points, hull_logits, mask_lookup
 
 from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
 from .raycast import mesh_intersector, pixel_center_rays
+from .sfm import read_stage_model
 from .support import GROUND_BAND, footprint_prism, plane_basis
 from .workspace import Done, Job, StageError, Workspace
 
@@ -141,9 +142,7 @@ def _tracks(ws: Workspace, names: list[str], max_error_ratio: float = 0.0):
     model = ws.root / "sfm" / "undistorted" / "sparse"
     if not model.exists():
         return None, None
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(model)
+    rec = read_stage_model(model)
     ids = list(rec.points3D.keys())
     index = {pid: k for k, pid in enumerate(ids)}
     xyz = np.array([rec.points3D[p].xyz for p in ids]).reshape(-1, 3)

@@ -302,6 +302,20 @@ def retriangulate(rec, database: Path, images: Path, work: Path, seed: int = 0, 
 
 
 # ----------------------------------------------------------------------------- judging a model
+def read_stage_model(path: Path):
+    """The cameras stage's undistorted COLMAP model at ``path``, as a later stage reads it; StageError naming it when
+    pycolmap cannot (a cameras run killed while COLMAP wrote it: the folder comes before its files)."""
+    import pycolmap
+
+    from .workspace import StageError
+
+    try:
+        return pycolmap.Reconstruction(path)
+    except Exception as exc:  # noqa: BLE001 - pycolmap raises ValueError or RuntimeError with COLMAP's own text
+        raise StageError(f"{path}: unreadable SfM model ({type(exc).__name__}); rerun the cameras stage "
+                         "(cameras --force)") from exc
+
+
 def model_stats(rec, names: list[str]) -> dict:
     """Registered photos, reprojection error, track length and the median number of points a view observes."""
     reg = [rec.image(i) for i in rec.reg_image_ids()]

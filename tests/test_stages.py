@@ -112,3 +112,15 @@ def test_reconstruct_a_synthetic_workspace_then_nothing_to_do(small_ws, tmp_path
     assert all(f"{s}: up to date" in out for s in ("train", "mesh", "texture"))
     again = {p.stem: json.loads(p.read_text())["finished"] for p in (ws / ".stages").glob("*.json")}
     assert {k: v for k, v in again.items() if k != "report"} == {k: v for k, v in done.items() if k != "report"}
+
+
+@pytest.mark.parametrize("stage", ["depth", "masks"])
+def test_half_written_sfm_model_is_one_line(small_ws, tmp_path, stage):
+    """A cameras run killed while COLMAP wrote the undistorted model leaves its folder without its files; the
+    stages that read it said pycolmap's "[reconstruction.cc:…] … files do not exist"."""
+    ws = tmp_path / "ws"
+    shutil.copytree(small_ws, ws)
+    model = ws / "sfm" / "undistorted" / "sparse"
+    model.mkdir(parents=True)
+    with pytest.raises(StageError, match=r"sparse: unreadable SfM model \(\w+\); rerun the cameras stage"):
+        run_stage(stage, ws)
