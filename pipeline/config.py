@@ -105,12 +105,11 @@ def _rule_broken(name: str, tp, value) -> str | None:
     if typing.get_origin(tp) is typing.Literal:
         return None if value in typing.get_args(tp) else "one of " + ", ".join(map(str, typing.get_args(tp)))
     if typing.get_origin(tp) is tuple:
+        args = typing.get_args(tp)
+        length = None if Ellipsis in args else len(args)  # tuple[int, ...]: any length
         ok = isinstance(value, tuple) and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1
-                                              for v in value)
-        n = [a for a in typing.get_args(tp) if a is not Ellipsis]
-        ok = ok and (Ellipsis in typing.get_args(tp) or len(value) == len(n))
-        return None if ok else "a list of whole numbers ≥ 1" + ("" if Ellipsis in typing.get_args(tp) else
-                                                                 f" ({len(n)} of them)")
+                                              for v in value) and length in (None, len(value))
+        return None if ok else "a list of whole numbers ≥ 1" + ("" if length is None else f" ({length} of them)")
     return None
 
 

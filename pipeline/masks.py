@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from dvr.cameras import Cameras, load_cameras, plane_height, project_points, sphere_bounds, to_normalized
-from dvr.data import IMAGE_EXTS, list_images, pad_stack, read_mask
+from dvr.data import list_images, pad_stack, read_mask
 from dvr.hull import grid_points, hull_logits, mask_lookup
 
 from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
@@ -105,11 +105,10 @@ def import_user_masks(ws: Workspace, names: list[str], sizes: list[tuple[int, in
     if not mask_dir.is_dir():
         raise StageError(f"{mask_dir}: not a folder; pass --masks DIR with one mask per photo (same file name)")
     files = {}
-    for p in sorted(mask_dir.iterdir()):  # image files only: a labelme .json beside its mask is not a mask
-        if p.is_file() and p.suffix.lower() in IMAGE_EXTS and not p.name.startswith("."):
-            if p.stem in files:
-                raise StageError(f"{mask_dir}: {files[p.stem].name} and {p.name} are masks of one photo; keep one")
-            files[p.stem] = p
+    for p in list_images(mask_dir):  # image files only: a labelme .json beside its mask is not a mask
+        if p.stem in files:
+            raise StageError(f"{mask_dir}: {files[p.stem].name} and {p.name} are masks of one photo; keep one")
+        files[p.stem] = p
     missing = [n for n in names if n not in files]
     if missing:
         raise StageError(f"{mask_dir}: no mask for {', '.join(missing[:5])}{'...' if len(missing) > 5 else ''}; "

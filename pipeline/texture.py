@@ -133,6 +133,11 @@ ATLAS_UTILISATION = 0.45
 on DTU's mesh, the cow and the fuze bottle at 2048-texel sides, 0.30-0.42 at 1000."""
 
 
+def filling_density(side: float, area: float) -> float:
+    """Texels per unit length at which xatlas's atlas of a surface of ``area`` about fills a ``side`` square."""
+    return side * float(np.sqrt(ATLAS_UTILISATION / max(area, 1e-12)))
+
+
 def make_atlas(verts: np.ndarray, faces: np.ndarray, density: float, padding: int, max_side: int,
                min_side: int = 256):
     """xatlas at ``density`` texels per unit length (its atlas as large as that needs; re-charted at a density
@@ -149,14 +154,15 @@ def make_atlas(verts: np.ndarray, faces: np.ndarray, density: float, padding: in
     area = trimesh.Trimesh(verts, faces, process=False).area
     co.max_boundary_length = 0.5 * float(np.sqrt(area))
     # charting again costs as much as the first time: a density whose atlas would pass the cap starts below it
-    density = min(density, max_side * float(np.sqrt(ATLAS_UTILISATION / max(area, 1e-12))))
+    density = min(density, filling_density(max_side, area))
     po = xatlas.PackOptions()
     po.padding = padding
     po.bilinear = True
+    verts32, faces32 = verts.astype(np.float32), faces.astype(np.uint32)
     for _ in range(3):
         po.texels_per_unit = float(density)
         atlas = xatlas.Atlas()
-        atlas.add_mesh(verts.astype(np.float32), faces.astype(np.uint32))
+        atlas.add_mesh(verts32, faces32)
         atlas.generate(co, po)
         w, h = atlas.width, atlas.height
         side = max(w, h)
@@ -323,7 +329,7 @@ def texels_per_unit(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int,
     (:func:`photo_texel_density`); with ``texel_density`` 0 (or no view seeing the object), that which fills a
     ``cfg.size`` square (:func:`make_atlas` keeps the side ≤ ``cfg.size``)."""
     tpu = cfg.texel_density * photo_texel_density(mesh, cams, sizes) if cfg.texel_density > 0 else 0.0
-    return tpu if tpu > 0 else cfg.size * float(np.sqrt(ATLAS_UTILISATION / max(mesh.area, 1e-12)))
+    return tpu if tpu > 0 else filling_density(cfg.size, mesh.area)
 
 
 def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams: Cameras, cfg: TextureConfig,
