@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import pickle
 import random
 import time
 import warnings
@@ -228,18 +229,45 @@ def save_model(path: Path, model: Field, cfg: FieldConfig, scale_mat: np.ndarray
                   "frame": np.eye(4) if frame is None else frame, "support": support, **(extra or {})}, path)
 
 
+# what torch.load and the reading of its dict raise on a file that is not what was saved: truncated or empty (a
+# disk filled, a copy cut short), another program's file, or a save of another version of this code
+_UNREADABLE = (OSError, EOFError, RuntimeError, ValueError, TypeError, KeyError, AttributeError, IndexError,
+               pickle.UnpicklingError)
+
+
+def _read_saved(path: Path, device: torch.device, keys: tuple[str, ...]) -> dict:
+    """The dict ``torch.save`` wrote at ``path``, holding ``keys``; a ValueError naming the file otherwise."""
+    try:
+        saved = torch.load(path, map_location=device, weights_only=False)
+    except _UNREADABLE as exc:
+        raise ValueError(f"{path}: damaged or not saved by this trainer ({type(exc).__name__})") from exc
+    missing = [k for k in keys if not isinstance(saved, dict) or k not in saved]
+    if missing:
+        raise ValueError(f"{path}: not saved by this trainer (no {', '.join(missing)})")
+    return saved
+
+
 def load_model(path: Path, device: torch.device) -> tuple[Field, np.ndarray, np.ndarray]:
     """Load a field saved by :func:`save_model`: (field, scale_mat: field frame → SfM frame, frame: field frame →
-    normalized frame of cameras.npz)."""
-    ck = torch.load(path, map_location=device, weights_only=False)
-    fc = dict(ck["field_config"])
-    fc["plane_res"] = tuple(fc["plane_res"])
-    fc["occ_plane_res"] = tuple(fc.get("occ_plane_res", ()))
-    model = make_field(FieldConfig(**fc)).to(device)
-    model.load_state_dict(ck["field"])
-    model.set_support(ck.get("support"))
+    normalized frame of cameras.npz). A ValueError naming the file when it is damaged or another version's."""
+    ck = _read_saved(path, device, ("field", "field_config", "scale_mat"))
+    try:
+        fc = dict(ck["field_config"])
+        fc["plane_res"] = tuple(fc["plane_res"])
+        fc["occ_plane_res"] = tuple(fc.get("occ_plane_res", ()))
+        model = make_field(FieldConfig(**fc)).to(device)
+        model.load_state_dict(ck["field"])
+        model.set_support(ck.get("support"))
+        scale_mat = np.asarray(ck["scale_mat"], dtype=np.float64).reshape(4, 4)
+        frame = np.asarray(ck.get("frame", np.eye(4)), dtype=np.float64).reshape(4, 4)
+    except _UNREADABLE as exc:  # a field of another version of this code (fields or weights renamed)
+        raise ValueError(f"{path}: a field this version cannot read ({type(exc).__name__})") from exc
     model.eval()
-    return model, ck["scale_mat"], np.asarray(ck.get("frame", np.eye(4)), dtype=np.float64)
+    return model, scale_mat, frame
+
+
+_CHECKPOINT_KEYS = ("step", "elapsed", "skipped", "field", "opt", "sched", "rng_torch", "rng_gen", "rng_np",
+                    "rng_py")
 
 
 class Trainer:
@@ -335,10 +363,11 @@ class Trainer:
         self.opt.state.pop(old, None)
 
     def try_resume(self) -> bool:
-        """Continue from ``checkpoint.pt`` when there is one (True), exactly where it stopped."""
+        """Continue from ``checkpoint.pt`` when there is one (True), exactly where it stopped. A ValueError naming
+        it, with the trainer untouched, when it is damaged or not a checkpoint."""
         if not self.ckpt_path.exists():
             return False
-        ck = torch.load(self.ckpt_path, map_location=self.device, weights_only=False)
+        ck = _read_saved(self.ckpt_path, self.device, _CHECKPOINT_KEYS)  # before anything of it is loaded
         saved_res = self.model.grid_resolution_in(ck["field"])
         if saved_res is not None and saved_res != self.model.grid_resolution:
             self._resize_grid(saved_res)  # the checkpoint is past the upsampling

@@ -170,6 +170,15 @@ def sfm_points(path, scale_mat: np.ndarray) -> np.ndarray | None:
     return transform_points(np.linalg.inv(scale_mat), pts)
 
 
+def read_model(path, device: torch.device):
+    """The trained field of ``model/final.pt`` (:func:`dvr.trainer.load_model`: field, scale_mat, frame); a
+    StageError naming the file and the fix when it is damaged or another version's."""
+    try:
+        return load_model(path, device)
+    except ValueError as exc:
+        raise StageError(f"{exc}; retrain (train --force)") from exc
+
+
 def _export(path, verts, faces, colors, scale_mat, to_normalized, frame):
     m = trimesh.Trimesh(verts, faces, vertex_colors=colors, process=False)
     m.apply_transform(scale_mat if frame == "sfm" else to_normalized)
@@ -183,7 +192,7 @@ def run(job: Job) -> Done:
     final = ws.model / "final.pt"
     raw, clean = ws.mesh / "raw.ply", ws.mesh / "clean.ply"
     dev = resolve_device(cfg.device)
-    field, scale_mat, to_norm = load_model(final, dev)
+    field, scale_mat, to_norm = read_model(final, dev)
     v, f, c = extract_mesh(field, cfg.resolution, cfg.coarse_factor, cfg.refine_steps, device=dev,
                            footprint=cfg.footprint)
     if len(f) == 0:

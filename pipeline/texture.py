@@ -32,9 +32,9 @@ from dvr.cameras import Cameras, load_cameras, project_points, to_normalized, to
 from dvr.data import list_images, read_rgb
 from dvr.device import resolve_device
 from dvr.fields import Field, evaluate_in_chunks
-from dvr.trainer import load_model
 
 from .blend import TexelSurface, bake, clipped_pixels
+from .mesh import read_model
 from .raycast import mesh_intersector, pixel_center_rays
 from .workspace import Done, Job, StageError
 from .zbuffer import ray_depth_map
@@ -493,9 +493,11 @@ def read_appearance(path: Path) -> dict:
     a StageError naming the file when it is unreadable or a gain is not finite and positive (a hand-edited file)."""
     try:
         looks = json.loads(Path(path).read_text())
-        gains = np.array([t["gain"] for t in looks.values()], np.float64).reshape(-1, 3)
+        gains = np.array([t["gain"] for t in looks.values()], np.float64)
     except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
         raise StageError(f"{path}: unreadable per-view gains ({type(exc).__name__}); retrain (train --force)") from exc
+    if gains.shape != (len(looks), 3):  # a scalar gain or a pair: training writes one gain per channel
+        raise StageError(f"{path}: each view's gain must be 3 numbers (R, G, B); retrain (train --force)")
     if not (np.isfinite(gains).all() and (gains > 0).all()):
         raise StageError(f"{path}: per-view gains must be finite and positive; retrain (train --force)")
     return looks
@@ -568,7 +570,7 @@ def run(job: Job) -> Done:
     if mesh_frame == "sfm":
         verts_n = to_normalized(verts_n, S)
     images, field_gain, clipped = photos_for_bake(paths, looks, cfg)
-    field, _, field_frame = load_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
+    field, _, field_frame = read_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
     nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame,
                                            field_gain, clipped)
     out_v = to_sfm(nv, S) if cfg.frame == "sfm" else nv

@@ -43,8 +43,13 @@ def run(job: Job) -> Done | None:
         raise StageError(str(exc)) from exc
     t0 = time.perf_counter()
     trainer = Trainer(cfg, data, ws.model)
-    if trainer.try_resume():
-        print(f"train: resuming at step {trainer.step}/{cfg.iterations}")
+    try:
+        if trainer.try_resume():
+            print(f"train: resuming at step {trainer.step}/{cfg.iterations}")
+    except ValueError as exc:  # a checkpoint cut short (a full disk, a copy): it holds nothing to lose
+        print(f"train: {exc}; starting afresh")
+        trainer.ckpt_path.unlink()
+        (ws.model / "log.jsonl").unlink(missing_ok=True)  # the log of the steps it stood for
     trainer.fit(job.stop_after)
     if trainer.step < cfg.iterations:
         return None

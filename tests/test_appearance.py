@@ -121,7 +121,11 @@ def test_a_broken_appearance_file_is_one_clear_error(tmp_path):
     good.write_text(json.dumps({"a": {"gain": [1.0, 0.9, 1.1]}}))
     assert read_appearance(good) == {"a": {"gain": [1.0, 0.9, 1.1]}}
     for text in ('{"a": {"gain": [1.0, NaN, 1]}}', '{"a": {"gain": [1.0, -1, 1]}}', '{"a": {"gain": [1, 1]}}',
-                 '{"a": {"gains": [1, 1, 1]}}', "[1, 2", '{"a": 3}'):
+                 '{"a": {"gains": [1, 1, 1]}}', "[1, 2", '{"a": 3}',
+                 # scalar gains, three views: reshaped to one row of 3 they passed, and relative_gains' message
+                 # (naming no file) reached the user
+                 '{"a": {"gain": 1.2}, "b": {"gain": 0.9}, "c": {"gain": 1.0}}',
+                 '{"a": {"gain": [1, 1, 1, 1, 1, 1]}, "b": {"gain": []}}'):
         good.write_text(text)
         with pytest.raises(StageError, match="appearance.json"):
             read_appearance(good)

@@ -114,6 +114,33 @@ def test_reconstruct_a_synthetic_workspace_then_nothing_to_do(small_ws, tmp_path
     assert {k: v for k, v in again.items() if k != "report"} == {k: v for k, v in done.items() if k != "report"}
 
 
+def test_damaged_model_files_are_one_line_or_start_afresh(small_ws, tmp_path, capsys):
+    """model/final.pt cut short (a full disk, a copy): the mesh and texture stages say so in one line naming it and
+    the fix (was torch's "PytorchStreamReader failed reading zip archive" traceback); a checkpoint cut short holds
+    nothing to lose: training says so and starts afresh (was the same traceback, on every rerun)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(small_ws, ws)
+    cfg = tiny_training(Config(), iterations=6, batch_rays=256)
+    cfg.train.checkpoint_every, cfg.train.log_every = 3, 1
+    run_stage("train", ws, cfg, stop_after=3)
+    checkpoint = ws / "model" / "checkpoint.pt"
+    checkpoint.write_bytes(checkpoint.read_bytes()[:1000])
+    capsys.readouterr()
+    assert run_stage("train", ws, cfg)
+    said = capsys.readouterr().out
+    assert "checkpoint.pt: damaged or not saved by this trainer (RuntimeError); starting afresh" in said
+    logged = [json.loads(line)["step"] for line in (ws / "model" / "log.jsonl").read_text().splitlines()]
+    assert logged == [1, 2, 3, 4, 5, 6]  # from the start, and the log of the lost steps gone with them
+    cfg.mesh.resolution, cfg.mesh.max_faces, cfg.texture.size = 64, 3000, 128
+    assert run_stage("mesh", ws, cfg)  # clean.ply for the texture stage
+    final = ws / "model" / "final.pt"
+    final.write_bytes(final.read_bytes()[:1000])
+    for stage in ("texture", "mesh"):
+        with pytest.raises(StageError, match=r"final.pt: damaged or not saved by this trainer \(RuntimeError\); "
+                                             r"retrain \(train --force\)"):
+            run_stage(stage, ws, cfg, force=True)
+
+
 @pytest.mark.parametrize("stage", ["depth", "masks"])
 def test_half_written_sfm_model_is_one_line(small_ws, tmp_path, stage):
     """A cameras run killed while COLMAP wrote the undistorted model leaves its folder without its files; the

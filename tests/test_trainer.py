@@ -46,6 +46,33 @@ def test_log_and_outputs(small_ws, tmp_path):
     assert torch.allclose(model.occupancy(p), t.model.occupancy(p))
 
 
+def test_damaged_saves_are_a_value_error_naming_the_file(small_ws, tmp_path):
+    """final.pt or checkpoint.pt cut short (a full disk, a copy), empty, another program's or another version's:
+    a ValueError naming the file (was torch's "failed finding central directory", EOFError, KeyError or TypeError),
+    and a damaged checkpoint leaves the trainer as it was."""
+    cfg = tiny_cfg(iterations=4, checkpoint_every=2)
+    data = load_scene(small_ws, torch.device("cpu"))
+    train(cfg, data, tmp_path)
+    final, ck = tmp_path / "final.pt", tmp_path / "checkpoint.pt"
+    saved = torch.load(final, weights_only=False)
+    newer = {**saved, "field_config": {**saved["field_config"], "a_later_knob": 1}}
+    cut = final.read_bytes()[:1000]
+    damages = {"cut": lambda p: p.write_bytes(cut), "empty": lambda p: p.write_bytes(b""),
+               "list": lambda p: torch.save([1, 2], p), "no-config": lambda p: torch.save({"field": {}}, p),
+               "newer": lambda p: torch.save(newer, p)}
+    for name, damage in damages.items():
+        bad = tmp_path / f"final-{name}.pt"
+        damage(bad)
+        with pytest.raises(ValueError, match=f"final-{name}.pt"):
+            load_model(bad, torch.device("cpu"))
+    ck.write_bytes(ck.read_bytes()[:1000])
+    t = Trainer(cfg, data, tmp_path)
+    before = {k: v.clone() for k, v in t.model.state_dict().items()}
+    with pytest.raises(ValueError, match="checkpoint.pt"):
+        t.try_resume()
+    assert t.step == 0 and all(torch.equal(v, t.model.state_dict()[k]) for k, v in before.items())
+
+
 def test_losses_are_means_not_sums():
     x = torch.randn(100)
     big = x.repeat(10)
