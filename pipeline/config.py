@@ -66,8 +66,12 @@ def load_config(path: str | Path | None) -> Config:
         raise FileNotFoundError(f"{path}: config file not found; pick one of configs/*.yaml")
     try:
         data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: not valid YAML ({exc})") from exc
+    except yaml.YAMLError as exc:  # its str() spans lines: the problem and where, in one
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(exc, "problem", None) or type(exc).__name__
+        raise ValueError(f"{path}: not valid YAML ({where}{problem}); fix it or start from configs/default.yaml") \
+            from exc
     try:
         cfg = from_dict(Config, data)
         check_config(cfg)

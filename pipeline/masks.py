@@ -1,6 +1,6 @@
 """Stage ``masks``: one binary mask per image (``masks/<stem>.png``), overlays and per-image confidence.
 
-User masks (``--masks DIR``) are matched by stem, validated (readable, binary-ish) and transformed like their
+User masks (``--masks-dir DIR``) are matched by stem, validated (readable, binary-ish) and transformed like their
 images (EXIF orientation applied, resized to the image size). Automatic masks use no learned model:
 
 1. seeds from geometry: sparse SfM points inside the object's unit sphere are object, points the view
@@ -103,7 +103,7 @@ def import_user_masks(ws: Workspace, names: list[str], sizes: list[tuple[int, in
     """Masks given by the user (``mask_dir``, matched by stem), checked to be binary and of the photo's aspect,
     resized to the images (``sizes``: (width, height) per name) into masks/; confidence 1 each."""
     if not mask_dir.is_dir():
-        raise StageError(f"{mask_dir}: not a folder; pass --masks DIR with one mask per photo (same file name)")
+        raise StageError(f"{mask_dir}: not a folder; pass --masks-dir DIR with one mask per photo (same file name)")
     files = {}
     for p in list_images(mask_dir):  # image files only: a labelme .json beside its mask is not a mask
         if p.stem in files:

@@ -63,6 +63,19 @@ class Workspace:
         """Stamps of the finished stages (<stage>.json)."""
         return self.root / ".stages"
 
+    def make_root(self) -> None:
+        """Create the workspace folder (StageError naming it when it is a file or cannot be created)."""
+        if self.root.exists() and not self.root.is_dir():
+            raise StageError(f"{self.root}: a file, not a workspace folder; give a new or existing folder")
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            probe = self.root / ".write-test"
+            probe.touch()
+            probe.unlink()
+        except OSError as exc:
+            raise StageError(f"{self.root}: cannot write the workspace here ({exc.strerror or type(exc).__name__}); "
+                             "give a folder you can write to") from exc
+
     def require(self, *paths: Path, hint: str) -> None:
         """StageError naming the first missing path and ``hint`` (what to run first)."""
         for p in paths:

@@ -44,6 +44,32 @@ def test_bad_config_file_one_line_error(tmp_path, capsys):
     assert rc == 2 and "missing.yaml" in err and len(err.splitlines()) == 1
 
 
+def test_broken_yaml_is_one_line_naming_where(tmp_path, capsys):
+    """PyYAML's message spans five lines (the problem, a context, a caret drawing); the user gets one."""
+    preset = tmp_path / "bad.yaml"
+    preset.write_text("train:\n  iterations: [1\n")
+    rc = main(["train", str(tmp_path), "--config", str(preset)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert "bad.yaml: not valid YAML (line 3, column 1:" in err and "configs/default.yaml" in err
+
+
+def test_a_file_as_workspace_is_one_line(tmp_path, capsys):
+    """A workspace path that is a file was NotADirectoryError's traceback (from the stamp of the first stage)."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        (photos / f"{i}.png").write_bytes(b"not looked at before the workspace is")
+    taken = tmp_path / "taken.txt"
+    taken.write_text("a user's file")
+    for command in (["reconstruct", str(taken), "--images", str(photos)], ["cameras", str(taken), "--images",
+                                                                         str(photos)]):
+        rc = main(command)
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and err == f"error: {taken}: a file, not a workspace folder; give a new or existing folder"
+    assert taken.read_text() == "a user's file"
+
+
 @pytest.mark.parametrize("yaml_text, named", [
     ("texture: {size: -5}\n", "--texture.size = -5: must be a whole number ≥ 1"),
     ("mesh: {max_faces: 0}\n", "--mesh.max-faces = 0: must be a whole number ≥ 1"),

@@ -303,6 +303,8 @@ def test_user_masks_validated(photo_ws, tmp_path, capsys):
     syn, ws0 = photo_ws
     ws = tmp_path / "ws"
     shutil.copytree(ws0, ws, ignore=shutil.ignore_patterns("masks", ".stages"))
+    assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2  # the fix names the real option
+    assert "m: not a folder; pass --masks-dir DIR" in capsys.readouterr().err
     (tmp_path / "m").mkdir()
     assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2
     assert "no mask for 000000" in capsys.readouterr().err
