@@ -6,10 +6,14 @@ import torch
 
 
 def resolve_device(name: str = "auto") -> torch.device:
-    """Return the torch device for ``name`` ("auto" picks CUDA when present, else CPU)."""
+    """Return the torch device for ``name`` ("auto" picks CUDA when present, else CPU); a ValueError (a user's
+    option, not a fault) for CUDA on a machine without it."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(name)
+    try:
+        dev = torch.device(name)
+    except RuntimeError as exc:  # torch's message lists some thirty device types
+        raise ValueError(f"device '{name}' is not a torch device; use device: auto, cpu or cuda") from exc
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError(f"device '{name}' requested but CUDA is not available; use device: auto or cpu")
+        raise ValueError(f"device '{name}' requested but CUDA is not available; use device: auto or cpu")
     return dev

@@ -57,6 +57,13 @@ def from_dict(cls, data: dict, where: str = ""):
     return cls(**kw)
 
 
+def yaml_problem(exc: yaml.YAMLError) -> str:
+    """PyYAML's error in one line, the problem and where (its str() spans five: a context and a caret drawing)."""
+    mark = getattr(exc, "problem_mark", None)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return where + (getattr(exc, "problem", None) or type(exc).__name__)
+
+
 def load_config(path: str | Path | None) -> Config:
     """Defaults, overridden by the YAML file at ``path`` (when given)."""
     if path is None:
@@ -66,11 +73,8 @@ def load_config(path: str | Path | None) -> Config:
         raise FileNotFoundError(f"{path}: config file not found; pick one of configs/*.yaml")
     try:
         data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:  # its str() spans lines: the problem and where, in one
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-        problem = getattr(exc, "problem", None) or type(exc).__name__
-        raise ValueError(f"{path}: not valid YAML ({where}{problem}); fix it or start from configs/default.yaml") \
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: not valid YAML ({yaml_problem(exc)}); fix it or start from configs/default.yaml") \
             from exc
     try:
         cfg = from_dict(Config, data)

@@ -36,11 +36,11 @@ def run(job: Job) -> Done | None:
     """Stage ``train`` (called by :func:`pipeline.stages.run_stage`): train, or resume the checkpoint in model/,
     → model/final.pt; None when ``job.stop_after`` stopped it early (the next run resumes)."""
     ws, cfg = job.ws, job.cfg
-    _fresh_or_resume(job)
-    try:
+    try:  # before model/ of another config is discarded: a run that cannot start loses nothing
         data = load_scene(ws.root, resolve_device(cfg.device))
     except (FileNotFoundError, ValueError) as exc:
         raise StageError(str(exc)) from exc
+    _fresh_or_resume(job)
     t0 = time.perf_counter()
     trainer = Trainer(cfg, data, ws.model)
     try:

@@ -90,3 +90,16 @@ def test_extract_mesh_on_device_matches_cpu(device):
     v1, f1, c1 = extract_mesh(SphereField().to(device), resolution=32)
     assert len(f0) > 0 and (f1 == f0).all()
     assert abs(v1 - v0).max() < 1e-5 and abs(c1.astype(int) - c0.astype(int)).max() <= 1
+
+
+def test_a_device_that_cannot_be_had_is_a_value_error():
+    """A user's option, one line through the CLI (was torch's RuntimeError listing some thirty device types, and
+    this code's own RuntimeError for CUDA without a GPU: both tracebacks)."""
+    from dvr.device import resolve_device
+
+    with pytest.raises(ValueError, match="'tpu' is not a torch device; use device: auto, cpu or cuda"):
+        resolve_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            resolve_device("cuda")
+    assert resolve_device("cpu") == torch.device("cpu")

@@ -141,6 +141,20 @@ def test_damaged_model_files_are_one_line_or_start_afresh(small_ws, tmp_path, ca
             run_stage(stage, ws, cfg, force=True)
 
 
+def test_a_training_that_cannot_start_loses_the_model_of_before(small_ws, tmp_path):
+    """Another config discards model/ (its checkpoint is not ours to resume); an option that stops the run before
+    it starts (a device this machine lacks) discarded it too, and the user was left with neither model."""
+    ws = tmp_path / "ws"
+    shutil.copytree(small_ws, ws)
+    cfg = tiny_training(Config(), iterations=4, batch_rays=256)
+    run_stage("train", ws, cfg)
+    before = (ws / "model" / "final.pt").read_bytes()
+    cfg.train.device = "tpu"
+    with pytest.raises(StageError, match="'tpu' is not a torch device"):
+        run_stage("train", ws, cfg)
+    assert (ws / "model" / "final.pt").read_bytes() == before
+
+
 @pytest.mark.parametrize("stage", ["depth", "masks"])
 def test_half_written_sfm_model_is_one_line(small_ws, tmp_path, stage):
     """A cameras run killed while COLMAP wrote the undistorted model leaves its folder without its files; the

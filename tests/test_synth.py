@@ -105,6 +105,19 @@ def test_bad_scene(tmp_path):
         write_scene(small_scene(world_scale=0.0), tmp_path)
 
 
+def test_bad_scene_file_is_one_line_naming_it(tmp_path):
+    """A scene file's YAML error was PyYAML's five lines; an unknown key did not name the file."""
+    broken, unknown = tmp_path / "broken.yaml", tmp_path / "unknown.yaml"
+    broken.write_text("shape: {kind: torus\n")
+    unknown.write_text("shape: {kind: torus, radios: 1}\n")
+    for path, said in ((broken, "broken.yaml: not valid YAML (line 2, column 1:"),
+                       (unknown, "unknown.yaml: unknown Shape keys: ['radios']")):
+        with pytest.raises(ValueError) as info:
+            load_scene_file(path)
+        assert str(info.value).startswith(str(tmp_path)) and said in str(info.value)
+        assert len(str(info.value).splitlines()) == 1
+
+
 def test_repo_scene_files_load():
     for f in (ROOT / "configs" / "scenes").glob("*.yaml"):
         load_scene_file(f)

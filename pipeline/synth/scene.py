@@ -213,6 +213,13 @@ def load_scene_file(path: str | Path) -> Scene:
     path = Path(path)
     try:
         d = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ValueError(f"{path}: cannot read scene ({exc})") from exc
-    return scene_from_dict(d or {}, path.parent)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read scene ({exc.strerror or type(exc).__name__})") from exc
+    except yaml.YAMLError as exc:
+        from ..config import yaml_problem
+
+        raise ValueError(f"{path}: not valid YAML ({yaml_problem(exc)}); start from configs/scenes/*.yaml") from exc
+    try:
+        return scene_from_dict(d or {}, path.parent)
+    except ValueError as exc:  # what the scene's keys and values are wrong in, named with the file
+        raise ValueError(f"{path}: {exc}") from exc
