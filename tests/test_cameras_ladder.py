@@ -59,10 +59,10 @@ def test_symmetric_object_stops_with_a_clear_error_never_wrong_poses(tmp_path, c
     DSP rung's features matched again verify as in the ladder. With RANSAC's default seed (-1) the verification of the
     guided DSP-SIFT matches came out differently on every run, on one thread too (about 100 of the 276 pairs, 3
     runs of 3), and the ladder then kept a model of this sphere now and then (a CI run at stop 28, a local run at
-    stop 29)."""
+    stop 29). 16 views (24 until stop 34: the whole ladder took 116 s of the suite's 10 minutes, now 46 s)."""
     sc = scene_from_dict({"shape": {"kind": "sphere", "radius": 0.6}, "albedo": {"kind": "checker", "scale": 5.0},
                           "background": {"kind": "backdrop", "radius": 3.5, "saturation": 0.6},
-                          "cameras": {"n_views": 24, "width": 320, "height": 240, "radius": 2.6, "fov_deg": 45,
+                          "cameras": {"n_views": 16, "width": 320, "height": 240, "radius": 2.6, "fov_deg": 45,
                                       "elevation": [0, 50], "rings": 2}}, ROOT)
     write_scene(sc, tmp_path / "syn")
     ws = tmp_path / "ws"
@@ -75,9 +75,9 @@ def test_symmetric_object_stops_with_a_clear_error_never_wrong_poses(tmp_path, c
     dsp, ladder = ladder_rungs("dsp", "dsp")[0], ws / "sfm" / "ladder"
     again = tmp_path / "again.db"
     shutil.copy(ladder / f"features-{dsp.features_key}.db", again)
-    _match(again, 24, dsp, "auto", seed=0, threads=1)
+    _match(again, 16, dsp, "auto", seed=0, threads=1)
     first = _verified_pairs(ladder / f"matches-{dsp.matches_key}.db")
-    assert len(first) == 276 and _verified_pairs(again) == first
+    assert len(first) == 120 and _verified_pairs(again) == first
 
 
 def test_merge_rung_registers_the_photos_a_partial_model_lacks(tmp_path):
