@@ -98,10 +98,10 @@ class MasksConfig:
 
 
 # ----------------------------------------------------------------------------- user masks
-def import_user_masks(ws: Workspace, names: list[str], sizes: list[tuple[int, int]], mask_dir: Path,
-                      cfg: MasksConfig) -> dict:
-    """Masks given by the user (``mask_dir``, matched by stem), checked to be binary and of the photo's aspect,
-    resized to the images (``sizes``: (width, height) per name) into masks/; confidence 1 each."""
+def read_user_masks(names: list[str], sizes: list[tuple[int, int]], mask_dir: Path, cfg: MasksConfig
+                    ) -> dict[str, np.ndarray]:
+    """Masks given by the user (``mask_dir``, matched by stem), every one checked to be binary and of the photo's
+    aspect before any is kept: per name the mask resized to its image (``sizes``: (width, height) per name), bool."""
     if not mask_dir.is_dir():
         raise StageError(f"{mask_dir}: not a folder; pass --masks-dir DIR with one mask per photo (same file name)")
     files = {}
@@ -113,7 +113,7 @@ def import_user_masks(ws: Workspace, names: list[str], sizes: list[tuple[int, in
     if missing:
         raise StageError(f"{mask_dir}: no mask for {', '.join(missing[:5])}{'...' if len(missing) > 5 else ''}; "
                          "name each mask like its photo (any image extension)")
-    conf = {}
+    resized = {}
     for n, (w, h) in zip(names, sizes):
         m = cv2.imread(str(files[n]), cv2.IMREAD_GRAYSCALE)  # EXIF orientation applied, like the photos
         if m is None:
@@ -127,10 +127,8 @@ def import_user_masks(ws: Workspace, names: list[str], sizes: list[tuple[int, in
         if abs(ar_m - ar_i) > 0.02 * ar_i:
             raise StageError(f"{files[n]}: mask is {m.shape[1]}x{m.shape[0]}, its photo's aspect is {w}x{h}; "
                              "make the mask the size of the photo")
-        m = cv2.resize(m, (w, h), interpolation=cv2.INTER_AREA) > cfg.user_threshold
-        cv2.imwrite(str(ws.masks / f"{n}.png"), m.astype(np.uint8) * 255)
-        conf[n] = 1.0
-    return conf
+        resized[n] = cv2.resize(m, (w, h), interpolation=cv2.INTER_AREA) > cfg.user_threshold
+    return resized
 
 
 # ----------------------------------------------------------------------------- automatic masks
@@ -443,13 +441,18 @@ def run(job: Job) -> Done:
     ws, cfg, masks = job.ws, job.cfg, job.sources.masks_dir
     paths = list_images(ws.images)
     names = [p.stem for p in paths]
+    imgs = [cv2.imread(str(p), cv2.IMREAD_COLOR) for p in paths]
+    # the user's masks are checked before the masks of before go: a wrong folder or one bad mask loses nothing
+    user = None if masks is None else read_user_masks(names, [(im.shape[1], im.shape[0]) for im in imgs],
+                                                      Path(masks), cfg)
     if ws.masks.exists():
         shutil.rmtree(ws.masks)
     ws.masks.mkdir(parents=True)
-    imgs = [cv2.imread(str(p), cv2.IMREAD_COLOR) for p in paths]
     footprint = None
-    if masks is not None:
-        conf = import_user_masks(ws, names, [(im.shape[1], im.shape[0]) for im in imgs], Path(masks), cfg)
+    if user is not None:
+        for n, m in user.items():
+            cv2.imwrite(str(ws.masks / f"{n}.png"), m.astype(np.uint8) * 255)
+        conf = dict.fromkeys(user, 1.0)
     else:
         conf, footprint = auto_masks(ws, names, imgs, cfg)
     write_overlays(ws, names, imgs, load_cameras(ws.cameras, n_views=len(names)))
