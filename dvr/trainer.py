@@ -235,10 +235,18 @@ _UNREADABLE = (OSError, EOFError, RuntimeError, ValueError, TypeError, KeyError,
                pickle.UnpicklingError)
 
 
+# what a save holds besides tensors and plain Python: numpy arrays (scale_mat, frame, support, numpy's RNG state)
+_NUMPY_GLOBALS = [np.dtype, np.ndarray, np._core.multiarray._reconstruct] + \
+    [type(np.dtype(t)) for t in (np.float64, np.float32, np.int64, np.int32, np.uint32, np.uint8, np.bool_)]
+
+
 def _read_saved(path: Path, device: torch.device, keys: tuple[str, ...]) -> dict:
-    """The dict ``torch.save`` wrote at ``path``, holding ``keys``; a ValueError naming the file otherwise."""
+    """The dict ``torch.save`` wrote at ``path``, holding ``keys``; a ValueError naming the file otherwise. Read
+    with ``weights_only``: a model file from elsewhere (a colleague, a shared cluster folder) cannot run code when
+    loaded, as a full unpickling would let it."""
     try:
-        saved = torch.load(path, map_location=device, weights_only=False)
+        with torch.serialization.safe_globals(_NUMPY_GLOBALS):
+            saved = torch.load(path, map_location=device, weights_only=True)
     except _UNREADABLE as exc:
         raise ValueError(f"{path}: damaged or not saved by this trainer ({type(exc).__name__})") from exc
     missing = [k for k in keys if not isinstance(saved, dict) or k not in saved]

@@ -1,6 +1,7 @@
 """Trainer: resume after a kill equals an uninterrupted run; log.jsonl; previews; losses are means."""
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -46,6 +47,16 @@ def test_log_and_outputs(small_ws, tmp_path):
     assert torch.allclose(model.occupancy(p), t.model.occupancy(p))
 
 
+class _RunsCode:
+    """Unpickled, it creates ``marker``: what a hostile model file could do with code of its own."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
 def test_damaged_saves_are_a_value_error_naming_the_file(small_ws, tmp_path):
     """final.pt or checkpoint.pt cut short (a full disk, a copy), empty, another program's or another version's:
     a ValueError naming the file (was torch's "failed finding central directory", EOFError, KeyError or TypeError),
@@ -65,6 +76,11 @@ def test_damaged_saves_are_a_value_error_naming_the_file(small_ws, tmp_path):
         damage(bad)
         with pytest.raises(ValueError, match=f"final-{name}.pt"):
             load_model(bad, torch.device("cpu"))
+    marker = tmp_path / "ran"
+    torch.save({**saved, "field_config": _RunsCode(marker)}, tmp_path / "final-code.pt")  # a file from elsewhere
+    with pytest.raises(ValueError, match="final-code.pt: damaged or not saved by this trainer"):
+        load_model(tmp_path / "final-code.pt", torch.device("cpu"))
+    assert not marker.exists()  # read with weights_only: unpickling it ran nothing
     ck.write_bytes(ck.read_bytes()[:1000])
     t = Trainer(cfg, data, tmp_path)
     before = {k: v.clone() for k, v in t.model.state_dict().items()}
