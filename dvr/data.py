@@ -172,8 +172,8 @@ def load_scene(ws: Path, device: torch.device, use_depth: bool = True, views: li
             ok = np.isfinite(d) & (d > 0) & np.isfinite(uv).all(1)
             # a sparse depth is object evidence only where the mask agrees (table points inside the sphere)
             h, w = masks[i].shape
-            inside = np.nan_to_num(np.floor(uv), nan=0.0, posinf=w, neginf=0.0)  # cast to int without numpy's warning
-            ij = np.clip(inside, 0, [w - 1, h - 1]).astype(int)
+            pixel = np.nan_to_num(np.floor(uv), nan=0.0, posinf=w, neginf=0.0)  # cast to int without numpy's warning
+            ij = np.clip(pixel, 0, [w - 1, h - 1]).astype(int)
             ok &= masks[i][ij[:, 1], ij[:, 0]] > 0.5
             dv.append(np.full(ok.sum(), i)), duv.append(uv[ok]), dd.append(d[ok])
         if dv and sum(len(x) for x in dv) > 0:

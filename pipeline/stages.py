@@ -202,11 +202,11 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
         stage.check(ws, p.src)
     for path, producer in stage.requires(ws):
         ws.require(path, hint=f"run the {producer} stage first")
-    ws.make_root()
     inputs, outputs = stage.inputs(ws, p.src), stage.outputs(ws)
     if not force and not stage.always and ws.up_to_date(name, p.config_hash, inputs, outputs):
         print(f"{name}: up to date ({outputs[0] if outputs else ws.root})")
         return False
+    ws.make_root()  # only a stage that runs writes: a call with nothing to do leaves the workspace untouched
     ws.clear(name)
     t0 = time.perf_counter()
     done = stage.body(Job(ws, p.cfg, p.src, force, p.config_hash, inputs, stop_after))

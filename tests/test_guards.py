@@ -3,6 +3,7 @@
 guard exists for and checks the result is finite (or the input is refused)."""
 
 import json
+import shutil
 import warnings
 
 import numpy as np
@@ -116,8 +117,6 @@ def _damage_depth(ws, field: str, value: float):
 
 
 def test_non_finite_sparse_depths_are_dropped(small_ws, tmp_path):
-    import shutil
-
     for field, value in (("depth", np.inf), ("uv", np.nan), ("uv", 1e30)):
         ws = tmp_path / f"{field}{value}"
         shutil.copytree(small_ws, ws)
