@@ -5,8 +5,8 @@ reconstruct``), ``make reconstruct``, the tests and the bench. A stage is one ro
 options (a config dataclass, which becomes the field ``<name>`` of :class:`pipeline.config.Config` and the CLI
 namespace ``--<name>.*``), its body (the stage module's ``run(job)``), what it requires, what makes it stale and
 what it writes. Adding a stage is adding its row (and its module). :func:`run_stage` owns the bookkeeping every
-stage shares (require the inputs, skip when up to date, clear the stamp, time the body, stamp it done); the bodies
-only work.
+stage shares (require the inputs, and their stage finished; skip when up to date; mark the stage begun; time the
+body; stamp it done); the bodies only work.
 See docs/design.md, "Stage contracts".
 
     from pipeline.stages import reconstruct, run_stage
@@ -202,12 +202,15 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
         stage.check(ws, p.src)
     for path, producer in stage.requires(ws):
         ws.require(path, hint=f"run the {producer} stage first")
+        if ws.unfinished(producer) and path in stage_named(producer).outputs(ws):
+            raise StageError(f"{path}: the {producer} stage's last run did not finish (it failed or was stopped), "
+                             f"so this may be an older run's or half written; run the {producer} stage again")
     inputs, outputs = stage.inputs(ws, p.src), stage.outputs(ws)
     if not force and not stage.always and ws.up_to_date(name, p.config_hash, inputs, outputs):
         print(f"{name}: up to date ({outputs[0] if outputs else ws.root})")
         return False
     ws.make_root()  # only a stage that runs writes: a call with nothing to do leaves the workspace untouched
-    ws.clear(name)
+    ws.begin(name)
     t0 = time.perf_counter()
     done = stage.body(Job(ws, p.cfg, p.src, force, p.config_hash, inputs, stop_after))
     if done is None:  # stopped early on request; the next run resumes

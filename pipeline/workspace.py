@@ -2,7 +2,9 @@
 
 A stage is up to date when its stamp (``.stages/<stage>.json``) records the same config hash, every
 output it lists exists, and no input is newer than the stamp. Stages write their outputs first and the
-stamp last, so a killed stage is never taken as done.
+stamp last, so a killed stage is never taken as done. A stage that starts writes ``.stages/<stage>.unfinished``
+and removes it with its stamp: while it is there, the stage's outputs are those of an older run or half written
+(a run that failed or was killed), and later stages refuse to read them.
 """
 
 from __future__ import annotations
@@ -86,6 +88,9 @@ class Workspace:
     def _stamp(self, stage: str) -> Path:
         return self.stages / f"{stage}.json"
 
+    def _unfinished(self, stage: str) -> Path:
+        return self.stages / f"{stage}.unfinished"
+
     def up_to_date(self, stage: str, cfg_hash: str, inputs: list[Path], outputs: list[Path]) -> bool:
         """Whether ``stage`` finished with this config hash, its outputs exist and no input is newer than its stamp."""
         stamp = self._stamp(stage)
@@ -107,6 +112,7 @@ class Workspace:
         tmp = self._stamp(stage).with_suffix(".tmp")
         tmp.write_text(json.dumps(rec, indent=1))
         os.replace(tmp, self._stamp(stage))
+        self._unfinished(stage).unlink(missing_ok=True)
 
     def stamp(self, stage: str) -> dict | None:
         """What a finished stage recorded (its config hash, seconds and details), or None."""
@@ -115,9 +121,16 @@ class Workspace:
         except (OSError, ValueError):
             return None
 
-    def clear(self, stage: str) -> None:
-        """Remove the stage's stamp (it is no longer done)."""
+    def begin(self, stage: str) -> None:
+        """A run of ``stage`` starts: its stamp goes (it is no longer done) and ``<stage>.unfinished`` marks its
+        outputs as not to be read until :meth:`mark_done`."""
         self._stamp(stage).unlink(missing_ok=True)
+        self.stages.mkdir(parents=True, exist_ok=True)
+        self._unfinished(stage).write_text(f"started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+
+    def unfinished(self, stage: str) -> bool:
+        """Whether the last run of ``stage`` started and did not finish (it failed, or was stopped or killed)."""
+        return self._unfinished(stage).exists()
 
     def seconds(self) -> dict[str, float]:
         """Seconds of every finished stage, by name."""

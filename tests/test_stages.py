@@ -5,7 +5,7 @@ import shutil
 
 import pytest
 
-from pipeline import stages
+from pipeline import report, stages
 from pipeline.config import Config
 from pipeline.stages import Stage, reconstruct, run_stage
 from pipeline.workspace import Done, StageError, Workspace
@@ -153,6 +153,32 @@ def test_a_training_that_cannot_start_loses_the_model_of_before(small_ws, tmp_pa
     with pytest.raises(StageError, match="'tpu' is not a torch device"):
         run_stage("train", ws, cfg)
     assert (ws / "model" / "final.pt").read_bytes() == before
+
+
+def test_a_stage_that_did_not_finish_is_not_read_by_the_next(small_ws, tmp_path):
+    """A stage run that fails (or is stopped or killed) leaves its older outputs: ``texture`` after a failed
+    ``mesh --force`` baked the older clean.ply, and, without the mesh stamp, read it in the default frame whatever
+    frame it was written in. Its outputs are now refused, naming the stage to run again, until it finishes."""
+    ws = tmp_path / "ws"
+    shutil.copytree(small_ws, ws)
+    cfg = tiny_training(Config(), iterations=4, batch_rays=256)
+    cfg.mesh.resolution, cfg.mesh.max_faces, cfg.texture.size = 64, 3000, 128
+    cfg.mesh.frame = "normalized"
+    for stage in ("train", "mesh", "texture"):
+        run_stage(stage, ws, cfg)
+    assert not list((ws / ".stages").glob("*.unfinished"))
+    cfg.mesh.frame, cfg.mesh.device = "sfm", "tpu"
+    with pytest.raises(ValueError, match="'tpu' is not a torch device"):
+        run_stage("mesh", ws, cfg)
+    assert (ws / "mesh" / "clean.ply").exists()  # the older mesh stays, for whoever wants it
+    with pytest.raises(StageError, match=r"clean.ply: the mesh stage's last run did not finish .*; run the mesh "
+                                         r"stage again"):
+        run_stage("texture", ws, cfg, force=True)
+    assert "last run did not finish" in report.build(Workspace(ws))
+    cfg.mesh.device = "auto"
+    run_stage("mesh", ws, cfg)
+    assert run_stage("texture", ws, cfg)
+    assert not (ws / ".stages" / "mesh.unfinished").exists()
 
 
 @pytest.mark.parametrize("stage", ["depth", "masks"])
