@@ -580,15 +580,15 @@ def import_cameras(ws: Workspace, photos: list[Path], cam_file: Path, cfg: Camer
     """Use given cameras (IDR/NeuS/DVR cameras.npz, one world_mat per photo in sorted order): skip SfM."""
     try:
         n = len(load_cameras(cam_file).K)  # every entry checked: indices, shapes, numbers, decomposable
-        z = np.load(cam_file)
     except ValueError as exc:  # load_cameras' one line names the file, the entry and what to write
         raise StageError(str(exc)) from exc
     if n != len(photos):
         raise StageError(f"{cam_file}: {n} cameras for {len(photos)} photos; give one world_mat_i per photo")
-    scale = z["scale_mat"] if "scale_mat" in z.files else z["scale_mat_0"] if "scale_mat_0" in z.files else None
-    given = [decompose_projection(np.asarray(z[f"world_mat_{i}"], float)[:3, :4]) for i in range(n)]
+    with np.load(cam_file) as z:  # the matrices as given, and whether a scale_mat was (load_cameras does not say)
+        scale = next((np.asarray(z[k], float) for k in ("scale_mat", "scale_mat_0") if k in z.files), None)
+        given = [decompose_projection(np.asarray(z[f"world_mat_{i}"], float)[:3, :4]) for i in range(n)]
     if cfg.triangulate_given:
-        info = triangulate_given(ws, photos, cfg, given, None if scale is None else np.asarray(scale, float))
+        info = triangulate_given(ws, photos, cfg, given, scale)
         if info is not None:
             return {**info, "given": str(cam_file)}
     if ws.images.exists():
@@ -602,8 +602,7 @@ def import_cameras(ws: Workspace, photos: list[Path], cam_file: Path, cfg: Camer
         nh, nw = img.shape[:2]
         cv2.imwrite(str(ws.images / f"{p.stem}.png"), img)
         Ks.append(np.diag([nw / w, nh / h, 1.0]) @ K), Rs.append(R), ts.append(t)
-    save_cameras(ws.cameras, np.stack(Ks), np.stack(Rs), np.stack(ts), np.eye(4) if scale is None else
-                 np.asarray(scale, float))
+    save_cameras(ws.cameras, np.stack(Ks), np.stack(Rs), np.stack(ts), np.eye(4) if scale is None else scale)
     write_points(ws.root / "points.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
     return {"views": [p.stem for p in photos], "given": str(cam_file)}
 
