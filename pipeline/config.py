@@ -17,6 +17,8 @@ from pathlib import Path
 
 import yaml
 
+from dvr.device import resolve_device
+
 from .stages import STAGES
 
 Config = dataclasses.make_dataclass(
@@ -121,23 +123,29 @@ def _rule_broken(name: str, tp, value) -> str | None:
     return None
 
 
-def check_config(cfg, where: str = "") -> None:
+def check_config(cfg, where: str = "", here: bool = False) -> None:
     """ValueError, one line naming the option, its value and what it must be, for an option of a config (the whole
     :class:`Config` or a stage's section, ``where`` its prefix: ``"texture."``) of the wrong type or out of range
     (:data:`POSITIVE`): a YAML preset can hold anything, and a negative size or a NaN would fail deep inside a
-    stage, after the stages before it have run."""
+    stage, after the stages before it have run. ``here``: the stages run on this machine, so a ``device`` it lacks
+    is named too (not when a preset is read: a batch's head node may have no GPU where its workers do)."""
     hints = typing.get_type_hints(type(cfg))
     for f in dataclasses.fields(cfg):
         name, value, tp = where + f.name, getattr(cfg, f.name), _resolve(hints[f.name])
         if dataclasses.is_dataclass(tp):
             if not isinstance(value, tp):
                 raise ValueError(f"{name}: expected a mapping of its options, got {value!r}")
-            check_config(value, name + ".")
+            check_config(value, name + ".", here)
             continue
         rule = _rule_broken(name, tp, value)
         if rule is not None:
             raise ValueError(f"--{name.replace('_', '-')} = {value!r}: must be {rule} (fix it on the command line "
                              "or in the YAML preset)")
+        if here and f.name == "device":  # a device this machine lacks, before a stage runs (not after training)
+            try:
+                resolve_device(value)
+            except ValueError as exc:
+                raise ValueError(f"--{name.replace('_', '-')}: {exc}") from exc
 
 
 def config_from_args(preset: str | Path | None, options: list[str]) -> Config:

@@ -197,7 +197,7 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
     p = _plan(name, workspace, config, images, masks_dir, given_cameras)
     stage, ws = p.stage, p.ws
     if p.cfg is not None:
-        check_config(p.cfg, stage.section + ".")
+        check_config(p.cfg, stage.section + ".", here=True)
     if stage.check is not None:
         stage.check(ws, p.src)
     for path, producer in stage.requires(ws):
@@ -229,7 +229,7 @@ def reconstruct(images: str | Path | None, workspace: str | Path, config: Config
     ``images``)."""
     from .config import Config, check_config
 
-    check_config(config or Config())  # every stage's options before the first stage runs
+    check_config(config or Config(), here=True)  # every stage's options before the first stage runs
     ws = Workspace(workspace)
     if images is None and not ws.cameras.exists():
         raise StageError(f"{ws.root}: no photos given and no cameras.npz there; pass the photo folder (--images DIR)")

@@ -96,13 +96,29 @@ def test_out_of_range_option_in_a_preset_is_one_line(tmp_path, capsys, yaml_text
 @pytest.mark.parametrize("argv, named", [
     (["--texture.size", "0"], "--texture.size = 0"),
     (["--texture.texel-density", "-1.5"], "--texture.texel-density = -1.5"),
-    (["--texture.angle-power", "inf"], "--texture.angle-power = inf"),
+    (["--texture.angle-power", "inf"], "--texture.angle-power = inf: must be"),
+    (["--texture.device", "tpu"], "--texture.device: device 'tpu' is not a torch device"),
 ])
 def test_out_of_range_option_on_the_command_line_is_one_line(tmp_path, capsys, argv, named):
     rc = main(["texture", str(tmp_path / "ws"), *argv])
     err = capsys.readouterr().err.strip()
-    assert rc == 2 and len(err.splitlines()) == 1 and err.startswith(f"error: {named}: must be")
+    assert rc == 2 and len(err.splitlines()) == 1 and err.startswith(f"error: {named}")
     assert not (tmp_path / "ws").exists()
+
+
+def test_a_device_this_machine_lacks_is_named_before_any_stage(tmp_path, capsys):
+    """``reconstruct --texture.device cuda`` on a laptop trained for minutes, then failed in the texture stage; a
+    device the machine lacks is now named with its option before the first stage. Reading a preset does not check
+    it (a batch's head node may lack the GPU its workers have)."""
+    preset = tmp_path / "gpu.yaml"
+    preset.write_text("train: {device: cuda}\ntexture: {device: tpu}\n")
+    assert load_config(preset).texture.device == "tpu"
+    ws = tmp_path / "ws"
+    rc = main(["reconstruct", str(ws), "--images", str(tmp_path), "--texture.device", "tpu"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err == "error: --texture.device: device 'tpu' is not a torch device; use device: auto, cpu " \
+                              "or cuda"
+    assert not ws.exists()
 
 
 def test_reconstruct_checks_every_stage_before_the_first():

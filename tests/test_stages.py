@@ -142,17 +142,22 @@ def test_damaged_model_files_are_one_line_or_start_afresh(small_ws, tmp_path, ca
 
 
 def test_a_training_that_cannot_start_loses_the_model_of_before(small_ws, tmp_path):
-    """Another config discards model/ (its checkpoint is not ours to resume); an option that stops the run before
-    it starts (a device this machine lacks) discarded it too, and the user was left with neither model."""
+    """Another config discards model/ (its checkpoint is not ours to resume); a run of another config that stops
+    before it starts (a mask gone) discarded it too, and the user was left with neither model. A device this machine
+    lacks stops it before the stage starts, naming the option."""
     ws = tmp_path / "ws"
     shutil.copytree(small_ws, ws)
     cfg = tiny_training(Config(), iterations=4, batch_rays=256)
     run_stage("train", ws, cfg)
     before = (ws / "model" / "final.pt").read_bytes()
-    cfg.train.device = "tpu"
-    with pytest.raises(StageError, match="'tpu' is not a torch device"):
+    cfg.train.iterations = 5
+    sorted((ws / "masks").glob("*.png"))[0].unlink()
+    with pytest.raises(StageError, match="000000.png"):
         run_stage("train", ws, cfg)
     assert (ws / "model" / "final.pt").read_bytes() == before
+    cfg.train.device = "tpu"
+    with pytest.raises(ValueError, match="--train.device: device 'tpu' is not a torch device"):
+        run_stage("train", ws, cfg)
 
 
 def test_a_stage_that_did_not_finish_is_not_read_by_the_next(small_ws, tmp_path):
@@ -167,15 +172,18 @@ def test_a_stage_that_did_not_finish_is_not_read_by_the_next(small_ws, tmp_path)
     for stage in ("train", "mesh", "texture"):
         run_stage(stage, ws, cfg)
     assert not list((ws / ".stages").glob("*.unfinished"))
-    cfg.mesh.frame, cfg.mesh.device = "sfm", "tpu"
-    with pytest.raises(ValueError, match="'tpu' is not a torch device"):
+    final = ws / "model" / "final.pt"
+    trained = final.read_bytes()
+    final.write_bytes(trained[:1000])  # the mesh run fails: its model is cut short
+    cfg.mesh.frame = "sfm"
+    with pytest.raises(StageError, match="final.pt: damaged"):
         run_stage("mesh", ws, cfg)
     assert (ws / "mesh" / "clean.ply").exists()  # the older mesh stays, for whoever wants it
+    final.write_bytes(trained)
     with pytest.raises(StageError, match=r"clean.ply: the mesh stage's last run did not finish .*; run the mesh "
                                          r"stage again"):
         run_stage("texture", ws, cfg, force=True)
     assert "last run did not finish" in report.build(Workspace(ws))
-    cfg.mesh.device = "auto"
     run_stage("mesh", ws, cfg)
     assert run_stage("texture", ws, cfg)
     assert not (ws / ".stages" / "mesh.unfinished").exists()
