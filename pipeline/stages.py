@@ -210,9 +210,13 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
         print(f"{name}: up to date ({outputs[0] if outputs else ws.root})")
         return False
     ws.make_root()  # only a stage that runs writes: a call with nothing to do leaves the workspace untouched
-    ws.begin(name)
+    before = ws.begin(name, outputs)
     t0 = time.perf_counter()
-    done = stage.body(Job(ws, p.cfg, p.src, force, p.config_hash, inputs, stop_after))
+    try:
+        done = stage.body(Job(ws, p.cfg, p.src, force, p.config_hash, inputs, stop_after))
+    except BaseException:  # a failure that wrote nothing (bad input found first) leaves the workspace as it was
+        ws.undo_begin(name, outputs, before)
+        raise
     if done is None:  # stopped early on request; the next run resumes
         return True
     seconds = done.seconds if done.seconds is not None else time.perf_counter() - t0

@@ -4,7 +4,8 @@ A stage is up to date when its stamp (``.stages/<stage>.json``) records the same
 output it lists exists, and no input is newer than the stamp. Stages write their outputs first and the
 stamp last, so a killed stage is never taken as done. A stage that starts writes ``.stages/<stage>.unfinished``
 and removes it with its stamp: while it is there, the stage's outputs are those of an older run or half written
-(a run that failed or was killed), and later stages refuse to read them.
+(a run that failed or was killed), and later stages refuse to read them. A run that fails having changed none of
+its outputs (bad input found first) leaves stamp and marker as it found them.
 """
 
 from __future__ import annotations
@@ -121,12 +122,30 @@ class Workspace:
         except (OSError, ValueError):
             return None
 
-    def begin(self, stage: str) -> None:
+    def begin(self, stage: str, outputs: list[Path]) -> Before:
         """A run of ``stage`` starts: its stamp goes (it is no longer done) and ``<stage>.unfinished`` marks its
-        outputs as not to be read until :meth:`mark_done`."""
-        self._stamp(stage).unlink(missing_ok=True)
+        outputs as not to be read until :meth:`mark_done`. Returns what :meth:`undo_begin` needs."""
+        stamp, marker = self._stamp(stage), self._unfinished(stage)
+        before = Before(stamp.read_bytes() if stamp.is_file() else None,
+                        stamp.stat().st_mtime if stamp.is_file() else 0.0, marker.exists(),
+                        [(p.exists(), newest_mtime(p)) for p in outputs])
+        stamp.unlink(missing_ok=True)
         self.stages.mkdir(parents=True, exist_ok=True)
-        self._unfinished(stage).write_text(f"started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        marker.write_text(f"started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        return before
+
+    def undo_begin(self, stage: str, outputs: list[Path], before: Before) -> bool:
+        """After a run of ``stage`` that failed: when it changed none of its ``outputs``, its stamp and marker as
+        they were before :meth:`begin` (the stamp with its time: what was up to date still is); returns whether."""
+        if [(p.exists(), newest_mtime(p)) for p in outputs] != before.outputs:
+            return False
+        stamp = self._stamp(stage)
+        if before.stamp is not None:
+            stamp.write_bytes(before.stamp)
+            os.utime(stamp, (before.stamp_mtime, before.stamp_mtime))
+        if not before.unfinished:
+            self._unfinished(stage).unlink(missing_ok=True)
+        return True
 
     def unfinished(self, stage: str) -> bool:
         """Whether the last run of ``stage`` started and did not finish (it failed, or was stopped or killed)."""
@@ -141,6 +160,16 @@ class Workspace:
             except (OSError, ValueError, KeyError):
                 pass
         return out
+
+
+@dataclass
+class Before:
+    """A stage's stamp (bytes and time), marker and outputs (exist, newest time) as a run found them."""
+
+    stamp: bytes | None
+    stamp_mtime: float
+    unfinished: bool
+    outputs: list[tuple[bool, float]]
 
 
 def config_hash(obj) -> str:

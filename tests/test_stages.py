@@ -5,7 +5,7 @@ import shutil
 
 import pytest
 
-from pipeline import report, stages
+from pipeline import mesh, report, stages
 from pipeline.config import Config
 from pipeline.stages import Stage, reconstruct, run_stage
 from pipeline.workspace import Done, StageError, Workspace
@@ -44,24 +44,32 @@ def test_run_stage_skips_when_up_to_date_and_reruns_when_stale_or_forced(tmp_pat
 
 
 def test_a_failing_rerun_removes_the_old_stamp(tmp_path, monkeypatch):
-    """A stage that finished once and then fails when redone is no longer done: the later stages see it."""
+    """A stage that finished once and then fails when redone, having written part of its outputs, is no longer
+    done: the later stages see it. One that fails before writing anything (bad input) is done as before."""
     fail = []
 
     def body(job):
+        if fail == ["before writing"]:
+            raise StageError(f"{job.ws.root}: bad input")
+        (job.ws.root / "x").write_text("half")
         if fail:
             raise StageError(f"{job.ws.root}: broken on purpose")
-        (job.ws.root / "x").write_text("x")
         return Done()
 
     flaky = Stage("flaky", "fails the second time", body, None, requires=lambda ws: [], inputs=lambda ws, src: [],
                   outputs=lambda ws: [ws.root / "x"])
     monkeypatch.setattr(stages, "STAGES", (*stages.STAGES, flaky))
     run_stage("flaky", tmp_path)
-    assert Workspace(tmp_path).stamp("flaky") is not None
-    fail.append(True)
+    done = Workspace(tmp_path).stamp("flaky")
+    assert done is not None
+    fail.append("before writing")
+    with pytest.raises(StageError, match="bad input"):
+        run_stage("flaky", tmp_path, force=True)
+    assert Workspace(tmp_path).stamp("flaky") == done and not Workspace(tmp_path).unfinished("flaky")
+    fail[0] = "after writing"
     with pytest.raises(StageError, match="broken on purpose"):
         run_stage("flaky", tmp_path, force=True)
-    assert Workspace(tmp_path).stamp("flaky") is None
+    assert Workspace(tmp_path).stamp("flaky") is None and Workspace(tmp_path).unfinished("flaky")
 
 
 def test_run_stage_names_the_missing_input_and_its_stage(tmp_path):
@@ -160,10 +168,12 @@ def test_a_training_that_cannot_start_loses_the_model_of_before(small_ws, tmp_pa
         run_stage("train", ws, cfg)
 
 
-def test_a_stage_that_did_not_finish_is_not_read_by_the_next(small_ws, tmp_path):
-    """A stage run that fails (or is stopped or killed) leaves its older outputs: ``texture`` after a failed
-    ``mesh --force`` baked the older clean.ply, and, without the mesh stamp, read it in the default frame whatever
-    frame it was written in. Its outputs are now refused, naming the stage to run again, until it finishes."""
+def test_a_stage_that_did_not_finish_is_not_read_by_the_next(small_ws, tmp_path, monkeypatch):
+    """A stage run that fails (or is stopped or killed) after writing part of its outputs leaves older or half
+    written ones: ``texture`` after an interrupted ``mesh`` baked the older clean.ply and, without the mesh stamp,
+    read it in the default frame whatever frame it was written in. Its outputs are now refused, naming the stage to
+    run again, until it finishes. A run that fails before writing anything (bad input found first) leaves the
+    workspace as it was: the stamp back, with its time, and nothing refused."""
     ws = tmp_path / "ws"
     shutil.copytree(small_ws, ws)
     cfg = tiny_training(Config(), iterations=4, batch_rays=256)
@@ -172,14 +182,16 @@ def test_a_stage_that_did_not_finish_is_not_read_by_the_next(small_ws, tmp_path)
     for stage in ("train", "mesh", "texture"):
         run_stage(stage, ws, cfg)
     assert not list((ws / ".stages").glob("*.unfinished"))
-    final = ws / "model" / "final.pt"
-    trained = final.read_bytes()
-    final.write_bytes(trained[:1000])  # the mesh run fails: its model is cut short
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt  # Ctrl-C after raw.ply was written, before clean.ply
+
     cfg.mesh.frame = "sfm"
-    with pytest.raises(StageError, match="final.pt: damaged"):
+    monkeypatch.setattr(mesh, "clean_mesh", interrupted)
+    with pytest.raises(KeyboardInterrupt):
         run_stage("mesh", ws, cfg)
+    monkeypatch.undo()
     assert (ws / "mesh" / "clean.ply").exists()  # the older mesh stays, for whoever wants it
-    final.write_bytes(trained)
     with pytest.raises(StageError, match=r"clean.ply: the mesh stage's last run did not finish .*; run the mesh "
                                          r"stage again"):
         run_stage("texture", ws, cfg, force=True)
@@ -187,6 +199,18 @@ def test_a_stage_that_did_not_finish_is_not_read_by_the_next(small_ws, tmp_path)
     run_stage("mesh", ws, cfg)
     assert run_stage("texture", ws, cfg)
     assert not (ws / ".stages" / "mesh.unfinished").exists()
+
+    stamp = ws / ".stages" / "mesh.json"
+    kept = stamp.read_bytes(), stamp.stat().st_mtime
+    final = ws / "model" / "final.pt"
+    trained = final.read_bytes()
+    final.write_bytes(trained[:1000])  # this mesh run fails before it writes anything
+    with pytest.raises(StageError, match="final.pt: damaged"):
+        run_stage("mesh", ws, cfg, force=True)
+    assert (stamp.read_bytes(), stamp.stat().st_mtime) == kept
+    assert not (ws / ".stages" / "mesh.unfinished").exists()
+    final.write_bytes(trained)
+    assert run_stage("texture", ws, cfg, force=True)
 
 
 @pytest.mark.parametrize("stage", ["depth", "masks"])

@@ -327,12 +327,17 @@ def test_user_masks_validated(photo_ws, tmp_path, capsys):
     m = cv2.imread(str(ws / "masks" / "000003.png"), 0)
     assert m.shape == cv2.imread(str(ws / "images" / "000003.png"), 0).shape
     # a rerun with a wrong folder or one bad mask loses nothing: every mask is checked before those of before go
-    # (the stage emptied masks/ first, and a typo in --masks-dir left the workspace without masks)
+    # (the stage emptied masks/ first, and a typo in --masks-dir left the workspace without masks); having changed
+    # nothing, it leaves the masks stage done, as it was, so training may use them
     before = {p.name: p.read_bytes() for p in (ws / "masks").glob("*.png")}
+    stamp = ws / ".stages" / "masks.json"
+    done = stamp.read_bytes(), stamp.stat().st_mtime
     (tmp_path / "m" / "000005.png").unlink()
     for folder in (tmp_path / "typo", tmp_path / "m"):
         assert main(["masks", str(ws), "--masks-dir", str(folder), "--force"]) == 2
         assert {p.name: p.read_bytes() for p in (ws / "masks").glob("*.png")} == before
+        assert (stamp.read_bytes(), stamp.stat().st_mtime) == done
+        assert not (ws / ".stages" / "masks.unfinished").exists()
 
 
 def _synthetic_model(k):
