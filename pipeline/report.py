@@ -211,7 +211,7 @@ def build(ws: Workspace, stats: dict | None = None) -> str:
             det = {k: v for k, v in stamps[st].items() if k not in ("config", "seconds", "finished")}
             parts.append(f"<tr><td>{st}</td><td>{secs.get(st, 0):.1f}</td><td><code>"
                          f"{html.escape(json.dumps(det))}</code></td></tr>")
-        elif ws.unfinished(st) and st != "report":
+        elif ws.unfinished(st) and st != "report":  # the report's own marker: this is that run
             parts.append(f"<tr><td>{st}</td><td>–</td><td><b>last run did not finish</b>: rerun it</td></tr>")
     parts.append(f"<tr><td><b>total</b></td><td><b>{sum(secs.values()):.1f}</b></td><td></td></tr></table>")
     parts.append(capture_section(ws, stamps.get("cameras", {})))

@@ -126,26 +126,25 @@ class Workspace:
         """A run of ``stage`` starts: its stamp goes (it is no longer done) and ``<stage>.unfinished`` marks its
         outputs as not to be read until :meth:`mark_done`. Returns what :meth:`undo_begin` needs."""
         stamp, marker = self._stamp(stage), self._unfinished(stage)
-        before = Before(stamp.read_bytes() if stamp.is_file() else None,
-                        stamp.stat().st_mtime if stamp.is_file() else 0.0, marker.exists(),
-                        [(p.exists(), newest_mtime(p)) for p in outputs])
+        found = stamp.is_file()
+        before = Before(stamp.read_bytes() if found else None, stamp.stat().st_mtime if found else 0.0,
+                        marker.exists(), outputs_state(outputs))
         stamp.unlink(missing_ok=True)
         self.stages.mkdir(parents=True, exist_ok=True)
         marker.write_text(f"started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
         return before
 
-    def undo_begin(self, stage: str, outputs: list[Path], before: Before) -> bool:
+    def undo_begin(self, stage: str, outputs: list[Path], before: Before) -> None:
         """After a run of ``stage`` that failed: when it changed none of its ``outputs``, its stamp and marker as
-        they were before :meth:`begin` (the stamp with its time: what was up to date still is); returns whether."""
-        if [(p.exists(), newest_mtime(p)) for p in outputs] != before.outputs:
-            return False
+        they were before :meth:`begin` (the stamp with its time: what was up to date still is)."""
+        if outputs_state(outputs) != before.outputs:
+            return
         stamp = self._stamp(stage)
         if before.stamp is not None:
             stamp.write_bytes(before.stamp)
             os.utime(stamp, (before.stamp_mtime, before.stamp_mtime))
         if not before.unfinished:
             self._unfinished(stage).unlink(missing_ok=True)
-        return True
 
     def unfinished(self, stage: str) -> bool:
         """Whether the last run of ``stage`` started and did not finish (it failed, or was stopped or killed)."""
@@ -231,6 +230,11 @@ def newest_mtime(p: Path) -> float:
         if q.is_file():
             m = max(m, q.stat().st_mtime)
     return m
+
+
+def outputs_state(outputs: list[Path]) -> list[tuple[bool, float]]:
+    """Per output path: whether it exists, and its newest modification time (what a run that wrote changes)."""
+    return [(p.exists(), newest_mtime(p)) for p in outputs]
 
 
 def subset_workspace(full: Path, dst: Path, keep: list[int]) -> None:
