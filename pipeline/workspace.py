@@ -163,12 +163,12 @@ class Workspace:
 
 @dataclass
 class Before:
-    """A stage's stamp (bytes and time), marker and outputs (exist, newest time) as a run found them."""
+    """A stage's stamp (bytes and time), marker and outputs (:func:`outputs_state`) as a run found them."""
 
     stamp: bytes | None
     stamp_mtime: float
     unfinished: bool
-    outputs: list[tuple[bool, float]]
+    outputs: list[tuple]
 
 
 def config_hash(obj) -> str:
@@ -232,9 +232,18 @@ def newest_mtime(p: Path) -> float:
     return m
 
 
-def outputs_state(outputs: list[Path]) -> list[tuple[bool, float]]:
-    """Per output path: whether it exists, and its newest modification time (what a run that wrote changes)."""
-    return [(p.exists(), newest_mtime(p)) for p in outputs]
+def outputs_state(outputs: list[Path]) -> list[tuple]:
+    """Per output path, what a run that wrote it changes: whether it exists and, for the file or each file in the
+    folder, its name, modification time (ns), size and inode. The time alone misses a rewrite within the file
+    system's time resolution (2 s on FAT, 1 s on some network shares); one that also keeps the size and the inode
+    (an in-place rewrite of the same length) is still missed."""
+    state = []
+    for p in outputs:
+        files = [p] if p.is_file() else sorted(q for q in p.rglob("*") if q.is_file()) if p.is_dir() else []
+        stats = [(q.stat(), q) for q in files]
+        state.append((p.exists(), tuple((str(q.relative_to(p)) if q != p else "", st.st_mtime_ns, st.st_size,
+                                         st.st_ino) for st, q in stats)))
+    return state
 
 
 def subset_workspace(full: Path, dst: Path, keep: list[int]) -> None:

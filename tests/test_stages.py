@@ -1,6 +1,7 @@
 """The pipeline API (pipeline/stages.py): the bookkeeping run_stage owns, bad input, and reconstruct end to end."""
 
 import json
+import os
 import shutil
 
 import pytest
@@ -70,6 +71,34 @@ def test_a_failing_rerun_removes_the_old_stamp(tmp_path, monkeypatch):
     with pytest.raises(StageError, match="broken on purpose"):
         run_stage("flaky", tmp_path, force=True)
     assert Workspace(tmp_path).stamp("flaky") is None and Workspace(tmp_path).unfinished("flaky")
+
+
+def test_a_rewrite_within_the_file_systems_time_resolution_counts_as_a_change(tmp_path):
+    """On FAT (2 s) or a coarse network share a failed run can rewrite an output and leave its time as it was: the
+    run still changed it, so its stamp must not come back (size and inode tell, not the time alone)."""
+    out = tmp_path / "x"
+    out.write_text("whole output")
+    ws = Workspace(tmp_path)
+    ws.mark_done("flaky", "h", 1.0)
+    before = ws.begin("flaky", [out])
+    old = out.stat().st_mtime_ns
+    out.write_text("half")  # in place, then the coarse clock's time
+    os.utime(out, ns=(old, old))
+    ws.undo_begin("flaky", [out], before)
+    assert ws.stamp("flaky") is None and ws.unfinished("flaky")
+    tmp = tmp_path / "x.tmp"  # the same length, written atomically (a new file renamed over it): a new inode
+    tmp.write_text("half")
+    ws.mark_done("flaky", "h", 1.0)
+    before = ws.begin("flaky", [out])
+    old = out.stat().st_mtime_ns
+    os.replace(tmp, out)
+    os.utime(out, ns=(old, old))
+    ws.undo_begin("flaky", [out], before)
+    assert ws.stamp("flaky") is None
+    ws.mark_done("flaky", "h", 1.0)  # a run that touched nothing gets its stamp back
+    before = ws.begin("flaky", [out, tmp_path / "missing"])
+    ws.undo_begin("flaky", [out, tmp_path / "missing"], before)
+    assert ws.stamp("flaky") is not None and not ws.unfinished("flaky")
 
 
 def test_run_stage_names_the_missing_input_and_its_stage(tmp_path):
