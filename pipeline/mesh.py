@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -161,13 +162,19 @@ def sfm_points(path, scale_mat: np.ndarray) -> np.ndarray | None:
     SfM); None when there is no such file (a workspace from given cameras without triangulation)."""
     if not path.exists():
         return None
-    try:
-        loaded = trimesh.load(path, file_type="ply", process=False)  # a PLY of no points loads as an empty Scene
-    except Exception as e:  # trimesh raises what its parser meets (ValueError, KeyError, struct.error, …)
-        raise StageError(f"{path}: unreadable SfM points ({type(e).__name__}); rerun the cameras stage "
-                         "(--force) or delete the file") from e
+    # a PLY of no points loads as an empty Scene
+    loaded = load_mesh_file(path, "ply", "SfM points", "rerun the cameras stage (--force) or delete the file")
     pts = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
     return transform_points(np.linalg.inv(scale_mat), pts)
+
+
+def load_mesh_file(path: Path, file_type: str, what: str, fix: str, **kwargs):
+    """``trimesh.load`` of a file a stage wrote (``process=False`` unless given), or a StageError naming it, what it
+    should hold and ``fix``, when it is damaged (a killed write, a disk that filled) or not what was written."""
+    try:
+        return trimesh.load(path, file_type=file_type, **{"process": False, **kwargs})
+    except Exception as e:  # noqa: BLE001 - trimesh raises what its parser meets (ValueError, KeyError, struct.error)
+        raise StageError(f"{path}: unreadable {what} ({type(e).__name__}); {fix}") from e
 
 
 def read_model(path, device: torch.device):

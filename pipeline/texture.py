@@ -34,7 +34,7 @@ from dvr.device import resolve_device
 from dvr.fields import Field, evaluate_in_chunks
 
 from .blend import TexelSurface, bake, clipped_pixels
-from .mesh import read_model
+from .mesh import load_mesh_file, read_model
 from .raycast import mesh_intersector, pixel_center_rays
 from .workspace import Done, Job, StageError
 from .zbuffer import ray_depth_map
@@ -430,8 +430,8 @@ def upright(cams: Cameras, frame: str) -> tuple[np.ndarray, str]:
 def read_textured(path: Path) -> tuple[trimesh.Trimesh, np.ndarray]:
     """The textured mesh of a ``textured.glb`` in the mesh stage's frame (its node's upright transform not applied)
     and its texture (float RGB); StageError naming it when it is damaged (a killed or interrupted write) or not ours."""
+    scene = load_mesh_file(path, "glb", "GLB", "rerun the texture stage (texture --force)", process=True)
     try:
-        scene = trimesh.load(path, file_type="glb")
         geoms = list(scene.geometry.values()) if isinstance(scene, trimesh.Scene) else [scene]
         texture = geoms[0].visual.material.baseColorTexture.convert("RGB") if len(geoms) == 1 else None
     except Exception as e:  # noqa: BLE001 - trimesh and PIL raise what they meet (IndexError, JSON, struct errors)
@@ -540,10 +540,7 @@ def photos_for_bake(paths: list[Path], looks: Path, cfg: TextureConfig):
 
 def read_clean_mesh(path: Path) -> trimesh.Trimesh:
     """The mesh stage's ``clean.ply`` (StageError naming it: unreadable, no triangles, empty)."""
-    try:
-        m = trimesh.load(path, file_type="ply", process=False)
-    except Exception as e:  # noqa: BLE001 - trimesh raises what its parser meets (ValueError, KeyError, struct.error)
-        raise StageError(f"{path}: unreadable mesh ({type(e).__name__}); rerun the mesh stage (mesh --force)") from e
+    m = load_mesh_file(path, "ply", "mesh", "rerun the mesh stage (mesh --force)")
     if not isinstance(m, trimesh.Trimesh):
         raise StageError(f"{path}: holds no triangles ({type(m).__name__}); rerun the mesh stage (mesh --force)")
     if len(m.faces) == 0:
