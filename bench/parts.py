@@ -107,8 +107,8 @@ def picture(ws: Path, views: list[int], out: Path) -> None:
                                    cams.sfm_centers[v], w, h)
         img = np.ascontiguousarray((np.clip(img, 0, 1) * 255).astype(np.uint8)[..., ::-1])
         img[~hit] = 255
-        ys, xs = np.nonzero(hit)  # both cropped to the mesh, 8 px around it
-        y0, y1, x0, x1 = max(0, ys.min() - 8), min(h, ys.max() + 9), max(0, xs.min() - 8), min(w, xs.max() + 9)
+        ys, xs = np.nonzero(hit) if hit.any() else ([0, h - 1], [0, w - 1])  # both cropped to the mesh, 8 px round
+        y0, y1, x0, x1 = max(0, np.min(ys) - 8), min(h, np.max(ys) + 9), max(0, np.min(xs) - 8), min(w, np.max(xs) + 9)
         row += [photo[y0:y1, x0:x1], img[y0:y1, x0:x1]]
     height = max(t.shape[0] for t in row)
     row = [np.pad(t, ((0, height - t.shape[0]), (0, 0), (0, 0)), constant_values=255) for t in row]
@@ -127,7 +127,7 @@ def main() -> None:
     a, options = ap.parse_known_args()
     syn = ev.scene(a.scene, {})
     arm = ev.RUNS / "pairs" / syn.name / "work" / "0"
-    full, ws = arm / "all", ev.RUNS / "work" / "parts" / a.part
+    full, ws = arm / "all", ev.RUNS / "work" / "parts" / syn.name / a.part
     if not (arm / "ws" / "mesh" / "textured.glb").exists():
         sys.exit(f"{arm}: no finished arm; run python bench/pair.py {a.scene} --preset {a.preset} --arm \"\" first")
     truth = Truth(syn, full)
