@@ -161,6 +161,28 @@ def train_mesh_texture(ws: Path, preset: str, options: list[str]) -> None:
     stages(("train", "mesh", "texture"), ws, config(preset, options))
 
 
+def true_cameras_of(gtc, hc) -> dict[str, tuple]:
+    """Per photo name of a photos-only run (``000000``…, the held-out ``heldout_000000``…): its true cameras (the
+    training ones ``gtc`` or the held-out ones ``hc``) and its index there."""
+    return {**{f"{i:06d}": (gtc, i) for i in range(len(gtc))}, **{f"{HELDOUT}{i:06d}": (hc, i) for i in range(len(hc))}}
+
+
+def heldout_psnrs(tm, tex, held: list[Path], masks: Path, names: list[str], est, hc,
+                  sim: tuple) -> tuple[list[float], list[float]]:
+    """PSNR of a photos-only run's textured mesh at its held-out photos ``held`` (their masks in ``masks``): at the
+    poses SfM gave those it registered (``est``, names ``names``), and at every one's true pose (``hc``) brought
+    into SfM's frame by ``sim`` = (s, R, t), with SfM's mean focal length."""
+    s, R, t = sim
+    at_sfm, at_true = [], []
+    for i, p in enumerate(held):
+        k = names.index(f"{HELDOUT}{p.stem}") if f"{HELDOUT}{p.stem}" in names else None
+        photo, gm = _read_rgb(p), _read_mask(masks / p.name)
+        if k is not None:  # at the pose SfM gave the held-out photo
+            at_sfm.append(render_psnr(tm, tex, est.K[k], est.R[k], est.sfm_centers[k], photo, gm))
+        at_true.append(render_psnr(tm, tex, est.K.mean(0), hc.R[i] @ R.T, s * R @ hc.sfm_centers[i] + t, photo, gm))
+    return at_sfm, at_true
+
+
 def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
     """A synthetic scene end to end (GT cameras and masks, or photos only through SfM), measured."""
     import trimesh
@@ -196,8 +218,7 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
         from dvr.data import list_images
 
         names = [p.stem for p in list_images(full / "images")]
-        gt_of = {**{f"{i:06d}": (gtc, i) for i in range(len(gtc))},
-                 **{f"{HELDOUT}{i:06d}": (hc, i) for i in range(len(hc))}}
+        gt_of = true_cameras_of(gtc, hc)
         est = load_cameras(full / "cameras.npz")
         gt_c = np.stack([gt_of[n][0].sfm_centers[gt_of[n][1]] for n in names])
         gt_R = np.stack([gt_of[n][0].R[gt_of[n][1]] for n in names])
@@ -214,14 +235,7 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
         train_mesh_texture(ws, spec["preset"], cli_over)
         secs = {**Workspace(full).seconds(), **Workspace(ws).seconds()}
         tm, tex = textured(ws)
-        psnr, psnr_gt = [], []
-        for i, p in enumerate(held):
-            k = names.index(f"{HELDOUT}{p.stem}") if f"{HELDOUT}{p.stem}" in names else None
-            photo, gm = _read_rgb(p), _read_mask(syn / "gt" / "heldout" / "masks" / p.name)
-            if k is not None:  # at the pose SfM gave the held-out photo
-                psnr.append(render_psnr(tm, tex, est.K[k], est.R[k], est.sfm_centers[k], photo, gm))
-            psnr_gt.append(render_psnr(tm, tex, est.K.mean(0), hc.R[i] @ R.T, s * R @ hc.sfm_centers[i] + t,
-                                       photo, gm))
+        psnr, psnr_gt = heldout_psnrs(tm, tex, held, syn / "gt" / "heldout" / "masks", names, est, hc, (s, R, t))
         extra["psnr_gt_pose"] = float(np.mean(psnr_gt))
         extra["heldout_registered"] = f"{len(psnr)}/{len(held)}"
     gt = trimesh.load(syn / "gt" / "mesh.ply")

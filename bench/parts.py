@@ -42,9 +42,8 @@ class Truth:
     """The scene's true cameras of every photo the arm mapped, and the similarity true world → SfM frame."""
 
     def __init__(self, syn: Path, full: Path):
-        train, held = load_cameras(syn / "gt" / "cameras.npz"), load_cameras(syn / "gt" / "heldout" / "cameras.npz")
-        self.of = {**{f"{i:06d}": (train, i) for i in range(len(train))},
-                   **{f"{ev.HELDOUT}{i:06d}": (held, i) for i in range(len(held))}}
+        held = load_cameras(syn / "gt" / "heldout" / "cameras.npz")
+        self.of = ev.true_cameras_of(load_cameras(syn / "gt" / "cameras.npz"), held)
         self.held, self.names = held, [p.stem for p in list_images(full / "images")]
         self.est = load_cameras(full / "cameras.npz")
         centres = np.stack([self.of[n][0].sfm_centers[self.of[n][1]] for n in self.names])
@@ -65,22 +64,16 @@ class Truth:
 def heldout_psnr(ws: Path, syn: Path, truth: Truth) -> tuple[list[float], list[float]]:
     """Held-out PSNR of the textured mesh at SfM's poses and at the true poses, per held-out photo."""
     tm, tex = ev.textured(ws)
-    est, at_sfm, at_true = truth.est, [], []
-    for i, p in enumerate(sorted((syn / "gt" / "heldout" / "images").glob("*.png"))):
-        k = truth.names.index(f"{ev.HELDOUT}{p.stem}")
-        photo, mask = ev._read_rgb(p), ev._read_mask(syn / "gt" / "heldout" / "masks" / p.name)
-        at_sfm.append(ev.render_psnr(tm, tex, est.K[k], est.R[k], est.sfm_centers[k], photo, mask))
-        centre = truth.s * truth.R @ truth.held.sfm_centers[i] + truth.t
-        at_true.append(ev.render_psnr(tm, tex, est.K.mean(0), truth.held.R[i] @ truth.R.T, centre, photo, mask))
-    return at_sfm, at_true
+    return ev.heldout_psnrs(tm, tex, sorted((syn / "gt" / "heldout" / "images").glob("*.png")),
+                            syn / "gt" / "heldout" / "masks", truth.names, truth.est, truth.held,
+                            (truth.s, truth.R, truth.t))
 
 
 def swap(part: str, arm_ws: Path, ws: Path, syn: Path, truth: Truth) -> None:
     """``ws``: a copy of the arm's workspace with the part's input swapped for the truth."""
     shutil.rmtree(ws, ignore_errors=True)
-    keep = ("model", "mesh") if part == "gt-cameras-bake" else ()
-    shutil.copytree(arm_ws, ws, ignore=lambda d, names: [n for n in names if Path(d) == arm_ws and (
-        n in ("model", "mesh", "report", "report.html") and n not in keep)])
+    left = {"report", "report.html"} | (set() if part == "gt-cameras-bake" else {"model", "mesh"})
+    shutil.copytree(arm_ws, ws, ignore=lambda d, names: left & set(names) if Path(d) == arm_ws else set())
     names = [p.stem for p in list_images(ws / "images")]
     if part == "gt-masks":
         for n in names:
