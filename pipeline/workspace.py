@@ -237,13 +237,14 @@ def outputs_state(outputs: list[Path]) -> list[tuple]:
     folder, its name, modification time (ns), size and inode. The time alone misses a rewrite within the file
     system's time resolution (2 s on FAT, 1 s on some network shares); one that also keeps the size and the inode
     (an in-place rewrite of the same length) is still missed."""
-    state = []
-    for p in outputs:
-        files = [p] if p.is_file() else sorted(q for q in p.rglob("*") if q.is_file()) if p.is_dir() else []
-        stats = [(q.stat(), q) for q in files]
-        state.append((p.exists(), tuple((str(q.relative_to(p)) if q != p else "", st.st_mtime_ns, st.st_size,
-                                         st.st_ino) for st, q in stats)))
-    return state
+    def files(p: Path) -> list[Path]:
+        return [p] if p.is_file() else sorted(q for q in p.rglob("*") if q.is_file()) if p.is_dir() else []
+
+    def signature(q: Path, root: Path) -> tuple:
+        st = q.stat()
+        return q.relative_to(root).as_posix(), st.st_mtime_ns, st.st_size, st.st_ino
+
+    return [(p.exists(), tuple(signature(q, p) for q in files(p))) for p in outputs]
 
 
 def subset_workspace(full: Path, dst: Path, keep: list[int]) -> None:
