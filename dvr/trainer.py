@@ -235,8 +235,10 @@ _UNREADABLE = (OSError, EOFError, RuntimeError, ValueError, TypeError, KeyError,
                pickle.UnpicklingError)
 
 
-# what a save holds besides tensors and plain Python: numpy arrays (scale_mat, frame, support, numpy's RNG state)
-_NUMPY_GLOBALS = [np.dtype, np.ndarray, np._core.multiarray._reconstruct] + \
+# what a save holds besides tensors and plain Python: numpy arrays (scale_mat, frame, support, numpy's RNG state).
+# An array pickles through the function its own __reduce__ names (numpy's private _reconstruct, whose module moved
+# from numpy.core to numpy._core in numpy 2): asked of numpy, not spelled out, so no private path is named here.
+_NUMPY_GLOBALS = [np.dtype, np.ndarray, np.zeros(1).__reduce__()[0]] + \
     [type(np.dtype(t)) for t in (np.float64, np.float32, np.int64, np.int32, np.uint32, np.uint8, np.bool_)]
 
 
