@@ -400,8 +400,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray],
     changed = []
     if cams.ground is not None and cfg.floor_rounds > 0:
         low = [low_band(cams, i, m.shape[0], m.shape[1], cfg.floor_band) for i, m in enumerate(current)]
-        current, last, changed = vote(imgs, seeds, current, cams, cfg, cfg.floor_rounds, cfg.floor_settle, low)
-        sil = last or sil
+        current, sil, changed = vote(imgs, seeds, current, cams, cfg, cfg.floor_rounds, cfg.floor_settle, low)
         print(f"masks: {len(changed)} floor rounds under the object; each changed "
               + ", ".join(f"{c:.2%}" for c in changed) + " of the object's pixels")
     conf = {}

@@ -366,6 +366,8 @@ def test_floor_rounds_clear_the_floor_between_the_legs_and_change_nothing_above_
     web out and leave the blob (it lies above the band: every pixel outside the band keeps its value); the same
     rounds unrestricted take the blob too — the band is what keeps the rest of a mask as the vote rounds left it
     (more rounds everywhere carve thin parts a few views miss)."""
+    import cv2
+
     from pipeline.masks import MasksConfig, low_band, vote
 
     cams, imgs, truth, through = _arch_views()
@@ -376,7 +378,7 @@ def test_floor_rounds_clear_the_floor_between_the_legs_and_change_nothing_above_
     blob = np.hypot(xx - 160, yy - 25) < 8  # sky over the arch in view 0
     assert not truth[0][blob].any()
     start[0] = start[0] | blob
-    seeds = [np.where(m, 3, 2).astype(np.uint8) for m in start]  # GC_PR_FGD inside, GC_PR_BGD outside
+    seeds = [np.where(m, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8) for m in start]
     cfg = MasksConfig(hull_res=64)
     low = [low_band(cams, i, 240, 320, cfg.floor_band) for i in range(len(imgs))]
     assert not low[0][blob].any()
