@@ -27,6 +27,7 @@ SCENES = {
     "jar": ROOT / "configs" / "scenes" / "jar_floor.yaml",
     "book": ROOT / "configs" / "scenes" / "book_floor.yaml",
     "jar_alike": ROOT / "configs" / "scenes" / "jar_table_alike.yaml",  # the jar on a table of its own colours
+    "stool": ROOT / "configs" / "scenes" / "stool_floor.yaml",  # a plain stool, legs 0.85 of its height, floor-coloured
     "cow_float": ROOT / "configs" / "scenes" / "cow_backdrop.yaml",
     "sphere": ROOT / "configs" / "scenes" / "sphere_checker.yaml",
     "torus_board": ROOT / "configs" / "scenes" / "torus_board.yaml",
