@@ -28,6 +28,7 @@ SCENES = {
     "book": ROOT / "configs" / "scenes" / "book_floor.yaml",
     "jar_alike": ROOT / "configs" / "scenes" / "jar_table_alike.yaml",  # the jar on a table of its own colours
     "stool": ROOT / "configs" / "scenes" / "stool_floor.yaml",  # a plain stool, legs 0.85 of its height, floor-coloured
+    "mug": ROOT / "configs" / "scenes" / "mug_table.yaml",  # an open mug, its handle's hole showing the table
     "thin": ROOT / "configs" / "scenes" / "thin_plate.yaml",  # a 0.04-thick plate on a sphere (not a bench row)
     "cow_float": ROOT / "configs" / "scenes" / "cow_backdrop.yaml",
     "sphere": ROOT / "configs" / "scenes" / "sphere_checker.yaml",

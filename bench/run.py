@@ -7,9 +7,9 @@ on the real DTU scan24 photos; and the cameras stage on a matrix of capture cond
 
 The main synthetic scenes stand on a surface, as real objects do: the textured cow on a wooden floor, a weakly
 textured jar on a blocky floor, a flat book on a stone-like table top (and, default preset only, a plain stool
-coloured like its floor); the cow floating in front of a backdrop is kept as the one floating scene. Each runs
-with the GT cameras and masks (four presets) and photos only (COLMAP + automatic masks, default preset; see
-bench/evaluate.py for the held-out protocol). A knob sweep around the default
+coloured like its floor and an open mug on a table); the cow floating in front of a backdrop is kept as the one
+floating scene. Each runs with the GT cameras and masks (four presets) and photos only (COLMAP + automatic masks,
+default preset; see bench/evaluate.py for the held-out protocol). A knob sweep around the default
 preset runs on the cow with GT cameras; DTU scan24 (49 real photos) runs photos only.
 
 Every run is its own process (peak memory = its max RSS) and calls the stage API the CLI calls. Per run:
@@ -119,8 +119,8 @@ def plan(quick: bool) -> list[dict]:
         return [{"scene": "cow", "cameras": "gt", "preset": p} for p in ("fast", "default")]
     out = [{"scene": s, "cameras": "gt", "preset": p} for s in FLOOR_SCENES for p in ("fast", "default", "quality")]
     out += [{"scene": s, "cameras": "gt", "preset": "balanced"} for s in FLOOR_SCENES]
-    out += [{"scene": s, "cameras": "gt", "preset": "default"} for s in ("cow_float", "stool")]
-    from_photos = (*FLOOR_SCENES, "cow_float", "sphere_board", "jar_alike", "stool")
+    out += [{"scene": s, "cameras": "gt", "preset": "default"} for s in ("cow_float", "stool", "mug")]
+    from_photos = (*FLOOR_SCENES, "cow_float", "sphere_board", "jar_alike", "stool", "mug")
     out += [{"scene": s, "cameras": "sfm", "preset": "default"} for s in from_photos]
     out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k} for k in KNOBS]
     out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k, "ablation": True}

@@ -118,6 +118,31 @@ def test_bad_scene_file_is_one_line_naming_it(tmp_path):
         assert len(str(info.value).splitlines()) == 1
 
 
+def test_torus_axis_and_difference_shapes():
+    """A mug's parts: a torus turned about y holds the points of its ring in the xz plane, and a difference keeps
+    the first part less the others (the cup's wall, not its inside)."""
+    import torch
+
+    from pipeline.synth.render import sdf
+    from pipeline.synth.scene import Shape
+
+    ring = Shape(kind="torus", axis="y", radius=0.5, minor=0.1, center=[0.2, 0.0, 0.0])
+    on_ring = torch.tensor([[0.7, 0.0, 0.0], [0.2, 0.0, 0.5], [-0.3, 0.0, 0.0], [0.2, 0.0, -0.5]])
+    assert torch.allclose(sdf(ring, on_ring), torch.full((4,), -0.1), atol=1e-6)
+    assert sdf(ring, torch.tensor([[0.2, 0.5, 0.0]])).item() > 0.3  # where the z-axis torus would be
+    flat = Shape(kind="torus", radius=0.5, minor=0.1)
+    assert sdf(flat, torch.tensor([[0.0, 0.5, 0.0]])).item() == pytest.approx(-0.1)
+    tube = Shape(kind="cylinder", axis="x", radius=0.3, minor=0.0, size=[0, 0, 0.6])
+    assert sdf(tube, torch.tensor([[0.5, 0.0, 0.0]])).item() < 0 < sdf(tube, torch.tensor([[0.0, 0.0, 0.5]])).item()
+    cup = Shape(kind="difference", parts=[{"kind": "sphere", "radius": 0.5}, {"kind": "sphere", "radius": 0.4}])
+    d = sdf(cup, torch.tensor([[0.0, 0.0, 0.0], [0.45, 0.0, 0.0], [0.0, 0.0, 0.6]]))
+    assert d[0] == pytest.approx(0.4) and d[1] == pytest.approx(-0.05) and d[2] == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="two or more parts"):
+        sdf(Shape(kind="difference", parts=[{"kind": "sphere"}]), on_ring)
+    with pytest.raises(ValueError, match="axis must be"):
+        sdf(Shape(kind="torus", axis="w"), on_ring)
+
+
 def test_repo_scene_files_load():
     for f in (ROOT / "configs" / "scenes").glob("*.yaml"):
         load_scene_file(f)

@@ -37,6 +37,10 @@ def sdf(shape: Shape, p: torch.Tensor) -> torch.Tensor:
     c = torch.tensor(shape.center, dtype=p.dtype)
     q = p - c
     k = shape.kind
+    if k in ("torus", "cylinder") and shape.axis != "z":  # turn the frame so that the axis becomes z
+        if shape.axis not in ("x", "y"):
+            raise ValueError(f"shape axis must be 'x', 'y' or 'z', got '{shape.axis}'")
+        q = q[:, [1, 2, 0]] if shape.axis == "x" else q[:, [2, 0, 1]]
     if k == "sphere":
         return q.norm(dim=-1) - shape.radius
     if k == "box":
@@ -56,7 +60,12 @@ def sdf(shape: Shape, p: torch.Tensor) -> torch.Tensor:
         if not shape.parts:
             raise ValueError("union shape needs parts")
         return torch.stack([sdf(Shape(**d), p) for d in shape.parts]).min(dim=0).values
-    raise ValueError(f"unknown analytic shape '{k}' (sphere, box, torus, cylinder, shell, union, mesh)")
+    if k == "difference":
+        if len(shape.parts) < 2:
+            raise ValueError("difference shape needs two or more parts (the solid, then what is cut from it)")
+        cuts = torch.stack([sdf(Shape(**d), p) for d in shape.parts[1:]]).min(dim=0).values
+        return torch.maximum(sdf(Shape(**shape.parts[0]), p), -cuts)
+    raise ValueError(f"unknown analytic shape '{k}' (sphere, box, torus, cylinder, shell, union, difference, mesh)")
 
 
 class MeshShape:

@@ -19,6 +19,7 @@ class Shape:
 
     kind: str = "torus"
     """sphere | box | torus | cylinder (upright, half height size[2], edges rounded by minor) | shell | union |
+    difference (the first part less the others: a cup is a cylinder less a narrower one above its floor) |
     mesh."""
     radius: float = 0.5
     """sphere radius; torus major radius; shell outer radius."""
@@ -28,8 +29,10 @@ class Shape:
     """box half extents."""
     center: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     """offset of the primitive."""
+    axis: str = "z"
+    """torus and cylinder: the axis they turn about, 'x', 'y' or 'z' (a mug's handle is a torus about 'y')."""
     parts: list[dict] = field(default_factory=list)
-    """union: a list of Shape dicts."""
+    """union, difference: a list of Shape dicts."""
     path: str = ""
     """mesh: an OBJ/PLY file; relative paths are relative to the scene file."""
     fit_radius: float = 0.8
