@@ -25,10 +25,12 @@ def facing_fscore(pred, gt, up: np.ndarray, n: int = 50000, slope: float = 0.7) 
     import trimesh
     from scipy.spatial import cKDTree
 
+    from dvr.metrics import sample_surface
+
     up = np.asarray(up, float) / np.linalg.norm(up)
     thr = 0.01 * float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
-    g, faces = trimesh.sample.sample_surface(gt, n, seed=1)
-    p, _ = trimesh.sample.sample_surface(pred, n, seed=0)
+    g, faces = trimesh.sample.sample_surface(gt, n, seed=1)  # the faces too, for their normals
+    p = sample_surface(pred, n, seed=0)  # the samples chamfer_fscore takes (the same seeds)
     g_facing = gt.face_normals[faces] @ up
     to_pred, _ = cKDTree(p).query(g, workers=-1)
     to_gt, nearest = cKDTree(g).query(p, workers=-1)

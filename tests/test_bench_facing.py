@@ -34,11 +34,14 @@ def test_the_stool_scene_mesh_is_one_closed_solid():
 
     mesh = trimesh.load(ROOT / "configs" / "scenes" / "meshes" / "stool.obj")
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.body_count == 1
-    seat = np.prod([hi - lo for lo, hi in SEAT])
+    seat_w, seat_d, seat_h = (hi - lo for lo, hi in SEAT)
     leg_w, leg_d, leg_h = (hi - lo for lo, hi in LEGS[0])
-    assert mesh.volume == pytest.approx(seat + 4 * leg_w * leg_d * leg_h)
+    assert mesh.volume == pytest.approx(seat_w * seat_d * seat_h + 4 * leg_w * leg_d * leg_h)
     # the boxes' areas less the legs' tops and the seat's underside where they join
-    boxes = 2 * (0.9 * 0.9 + 2 * 0.9 * 0.15) + 4 * 2 * (leg_w * leg_d + 2 * leg_w * leg_h)
+    def box_area(w, d, h):
+        return 2 * (w * d + w * h + d * h)
+
+    boxes = box_area(seat_w, seat_d, seat_h) + 4 * box_area(leg_w, leg_d, leg_h)
     assert mesh.area == pytest.approx(boxes - 2 * 4 * leg_w * leg_d)
     v, f = boxes_surface([SEAT, *LEGS])
     assert trimesh.Trimesh(v, f).area == pytest.approx(mesh.area)  # the committed file is the generator's

@@ -59,13 +59,17 @@ def sdf(shape: Shape, p: torch.Tensor) -> torch.Tensor:
     if k == "union":
         if not shape.parts:
             raise ValueError("union shape needs parts")
-        return torch.stack([sdf(Shape(**d), p) for d in shape.parts]).min(dim=0).values
+        return _union_sdf(shape.parts, p)
     if k == "difference":
         if len(shape.parts) < 2:
             raise ValueError("difference shape needs two or more parts (the solid, then what is cut from it)")
-        cuts = torch.stack([sdf(Shape(**d), p) for d in shape.parts[1:]]).min(dim=0).values
-        return torch.maximum(sdf(Shape(**shape.parts[0]), p), -cuts)
+        return torch.maximum(sdf(Shape(**shape.parts[0]), p), -_union_sdf(shape.parts[1:], p))
     raise ValueError(f"unknown analytic shape '{k}' (sphere, box, torus, cylinder, shell, union, difference, mesh)")
+
+
+def _union_sdf(parts: list[dict], p: torch.Tensor) -> torch.Tensor:
+    """Signed distance of the union of the Shape dicts ``parts`` at points (M, 3)."""
+    return torch.stack([sdf(Shape(**d), p) for d in parts]).min(dim=0).values
 
 
 class MeshShape:
