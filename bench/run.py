@@ -71,6 +71,7 @@ ABLATIONS = {
     "exposure+specular, view shading": (["--train.view-shading"], {"effects_add": LOOKS}),
     "view selection": (["--texture.view-selection"], {}),  # the bake: one view per face, Potts smoothness
     "final adjustment": (["--cameras.final-passes", "3"], {}),  # SfM: final robust bundle adjustment passes
+    "photo hull": (["--train.photo-hull"], {}),  # start from the photo hull (a cup's inside)
 }
 
 
@@ -139,6 +140,8 @@ def plan(quick: bool) -> list[dict]:
     out += [{"scene": s, "cameras": "sfm", "preset": "default", "knob": "final adjustment", "ablation": True}
             for s in (*FLOOR_SCENES, "cow_float", "dtu")]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "balanced", "knob": "final adjustment", "ablation": True}]
+    out += [{"scene": "mug", "cameras": c, "preset": "default", "knob": "photo hull", "ablation": True}
+            for c in ("gt", "sfm")]
     out += [{"kind": "cameras", "condition": c, "scene": CONDITIONS[c][0]} for c in CONDITIONS]
     return out
 

@@ -72,23 +72,38 @@ def grid_points(res: int, device=None, dtype=torch.float32) -> torch.Tensor:
     return torch.stack([x, y, z], dim=-1).view(-1, 3)
 
 
-def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1, slope_cells: float = 1.0,
-                clamp: float = 10.0, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
-                contact_band: float = 0.0) -> torch.Tensor:
-    """Logit volume (res+1)³ [x, y, z] of the visual hull: ≈ signed distance (in cells) × 2/slope_cells,
-    positive inside; points outside the unit sphere (or below the support plane ``ground``) are free. Returns a
-    float32 tensor on masks' device."""
+def hull_inside(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1,
+                ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
+                contact_band: float = 0.0) -> np.ndarray:
+    """(res+1)³ bool lattice [x, y, z] over [-1, 1]³: inside the visual hull (:func:`outside_hull`) and the unit
+    sphere."""
     pts = grid_points(res, device=masks.device)
     free = outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes, contact_band=contact_band) \
         | (pts.norm(dim=-1) > 1.0)
-    inside = (~free).view(res + 1, res + 1, res + 1).cpu().numpy()
+    return (~free).view(res + 1, res + 1, res + 1).cpu().numpy()
+
+
+def inside_logits(inside: np.ndarray, slope_cells: float = 1.0, clamp: float = 10.0,
+                  device=None) -> torch.Tensor:
+    """Logit volume of a bool lattice: ≈ signed distance (in cells) × 2/slope_cells, positive inside, within
+    ±``clamp``; float32 on ``device``."""
     if not inside.any():
-        return torch.full((res + 1,) * 3, -clamp, device=masks.device)
+        return torch.full(inside.shape, -clamp, device=device)
     d_in = ndimage.distance_transform_edt(inside)
     d_out = ndimage.distance_transform_edt(~inside)
     sdf = np.where(inside, d_in - 0.5, -(d_out - 0.5))
     logit = np.clip(sdf * (2.0 / slope_cells), -clamp, clamp)
-    return torch.from_numpy(logit.astype(np.float32)).to(masks.device)
+    return torch.from_numpy(logit.astype(np.float32)).to(device)
+
+
+def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1, slope_cells: float = 1.0,
+                clamp: float = 10.0, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
+                contact_band: float = 0.0) -> torch.Tensor:
+    """Logit volume (res+1)³ [x, y, z] of the visual hull (:func:`hull_inside`, :func:`inside_logits`);
+    points outside the unit sphere (or below the support plane ``ground``) are free. Returns a float32 tensor
+    on masks' device."""
+    inside = hull_inside(P, masks, res, min_views, ground=ground, sizes=sizes, contact_band=contact_band)
+    return inside_logits(inside, slope_cells, clamp, device=masks.device)
 
 
 def hull_bounding_sphere(P: torch.Tensor, masks: torch.Tensor, res: int = 64, min_views: int = 1,

@@ -23,9 +23,10 @@ from .cameras import in_contact_band, plane_height
 from .data import RaySampler, SceneData
 from .device import resolve_device
 from .fields import Field, FieldConfig, finite_difference_normals, make_field
-from .hull import carve_along_rays, hull_bounding_sphere, hull_logits, outside_hull
+from .hull import carve_along_rays, hull_bounding_sphere, hull_inside, inside_logits, outside_hull
 from .implicit import implicit_depth
 from .march import INSIDE, MISS, SurfaceResult, find_surface
+from .photohull import photo_carve
 from .render import render_view
 from .shading import ViewShading
 
@@ -159,6 +160,16 @@ class TrainConfig:
     """Initialise the occupancy grid from the visual hull of the masks."""
     hull_res: int = 64
     """Resolution of the visual-hull volume."""
+    photo_hull: bool = False
+    """Start from the photo hull instead of the visual hull (:mod:`dvr.photohull`): carve away what the views
+    that see it disagree on in colour, such as the lid over a cup's inside, which no silhouette removes and the
+    depth gradient, acting along each ray locally, does not open. Counts go to ``model/photo_hull.json``."""
+    photo_hull_res: int = 128
+    """Lattice resolution of the photo hull: its cell must be finer than the object's thin parts (a cup's wall,
+    a handle), whose every point is a surface point at a coarse one."""
+    photo_spread: float = 0.005
+    """Colour spread (colours in [0, 1]; the median absolute deviation across the views that see a point) above
+    which the photo hull carves a point; 6 × this capture's median spread when that is higher."""
     carve_min_views: int = 1
     """Views that must see a point outside their mask before it is carved."""
     contact_band: float = 0.05
@@ -305,8 +316,7 @@ class Trainer:
                 raise ValueError(f"upsample_at must lie in (0, 1), got {cfg.upsample_at}")
             self.model.resize_base(cfg.coarse_res)
         if cfg.hull_init:
-            vol = hull_logits(data.P, data.masks, cfg.hull_res, cfg.carve_min_views, ground=data.cams.ground,
-                              sizes=data.sizes, contact_band=cfg.contact_band)
+            vol = self._initial_logits()
             if cfg.depth_carve_init and data.depth_val is not None:
                 o, d = data.rays(data.depth_views, data.depth_uv)
                 vol = carve_along_rays(vol, o, d, data.depth_val - cfg.depth_free_margin,
@@ -331,6 +341,20 @@ class Trainer:
         self.step = 0
         self.elapsed = 0.0
         self.skipped = 0
+
+    def _initial_logits(self) -> torch.Tensor:
+        """The visual hull's logit volume, or with ``photo_hull`` the photo hull's (at its own resolution, with
+        the same slope in space)."""
+        cfg, data = self.cfg, self.data
+        res = cfg.photo_hull_res if cfg.photo_hull else cfg.hull_res
+        inside = hull_inside(data.P, data.masks, res, cfg.carve_min_views, ground=data.cams.ground,
+                             sizes=data.sizes, contact_band=cfg.contact_band)
+        if cfg.photo_hull:
+            result = photo_carve(inside, data.P, data.images, data.masks, data.sizes, spread_floor=cfg.photo_spread)
+            inside = result.inside
+            summary = {k: (v if math.isfinite(v) else None) for k, v in vars(result).items() if k != "inside"}
+            (self.out / "photo_hull.json").write_text(json.dumps(summary, indent=1))
+        return inside_logits(inside, slope_cells=res / cfg.hull_res, device=data.masks.device)
 
     # ----------------------------------------------------------------- checkpoints
     @property

@@ -1,0 +1,264 @@
+"""Photo hull: carve from the visual hull the voxels that the views seeing them disagree on (space carving,
+Kutulakos & Seitz 2000).
+
+No silhouette removes a concavity (a cup's inside): the visual hull closes it with a lid at the rim, and DVR's
+depth gradient moves a surface only locally along each ray, so training keeps the lid. On the lid the views
+that see a point see different parts of the cup's inside, so their colours spread; on a true surface they
+agree. Each sweep finds the hull's surface voxels, which views see them (a z-buffer of the surface voxels),
+and carves those whose colours spread more than a threshold; the next sweep sees the layer below. The
+threshold is relative to the first sweep's median spread (the noise, exposure and texture of this capture)
+with an absolute floor; a carve that would open a hole in any silhouette is undone.
+
+All on a coarse lattice at reduced image resolution (a lattice cell ≈ 1.5 pixels); the result is the
+initial occupancy of training (:class:`dvr.trainer.Trainer`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy import ndimage
+
+from .cameras import project
+from .hull import grid_points
+
+NORMAL_SHIFTS = (-0.5, 0.5)
+"""Where else along the normal (in cells) a surface point's colours are read; its spread is the least."""
+
+
+@dataclass
+class PhotoCarveResult:
+    """What :func:`photo_carve` did."""
+
+    inside: np.ndarray
+    """(R+1)³ bool lattice [x, y, z]: the photo hull."""
+    carved: int
+    """Lattice points carved (kept carved after the silhouette check)."""
+    restored: int
+    """Carves undone because they opened a silhouette."""
+    sweeps: int
+    """Sweeps run."""
+    threshold: float
+    """Colour spread above which a surface point was carved."""
+    pool: int
+    """Image reduction factor the colours were read at."""
+
+
+def _surface(inside: np.ndarray) -> np.ndarray:
+    """Occupied lattice points with a free 6-neighbour (the lattice's border counts as free)."""
+    return inside & ~ndimage.binary_erosion(inside, border_value=0)
+
+
+def _outward_normals(inside: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """(M, 3) unit outward normals at lattice points ``idx`` (M, 3): the gradient of the smoothed occupancy."""
+    smooth = ndimage.gaussian_filter(inside.astype(np.float32), 1.0)
+    g = np.stack([np.gradient(smooth, axis=a)[tuple(idx.T)] for a in range(3)], 1)
+    return -g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-8)
+
+
+def _splat_index(uv: torch.Tensor, H: int, W: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat pixel indices (V, M, 9) of the 3×3 pixels around each projection and whether each lies inside."""
+    offs = torch.tensor([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], device=uv.device)
+    pix = torch.floor(uv).long()[:, :, None, :] + offs
+    ok = (pix[..., 0] >= 0) & (pix[..., 0] < W) & (pix[..., 1] >= 0) & (pix[..., 1] < H)
+    return pix[..., 1].clamp(0, H - 1) * W + pix[..., 0].clamp(0, W - 1), ok
+
+
+def _coverage(uv: torch.Tensor, z: torch.Tensor, H: int, W: int) -> torch.Tensor:
+    """(V, H·W) bool: the pixels the points' 3×3 splats cover (points in front of the camera)."""
+    idx, ok = _splat_index(uv, H, W)
+    ok &= (z > 0)[..., None]
+    cov = torch.zeros(uv.shape[0], H * W, dtype=torch.bool, device=uv.device)
+    cov.scatter_(1, torch.where(ok, idx, 0).flatten(1), ok.flatten(1))
+    return cov
+
+
+def _visible(uv: torch.Tensor, z: torch.Tensor, H: int, W: int, tol: torch.Tensor) -> torch.Tensor:
+    """(V, M) bool: the point is within ``tol`` (V, 1) of the nearest of all the points' 3×3 splats at its
+    pixel (a z-buffer of the surface points)."""
+    idx, ok = _splat_index(uv, H, W)
+    ok &= (z > 0)[..., None]
+    zbuf = torch.full((uv.shape[0], H * W), float("inf"), device=uv.device)
+    vals = torch.where(ok, z[..., None].expand_as(idx), torch.full_like(idx, float("inf"), dtype=z.dtype))
+    zbuf.scatter_reduce_(1, idx.flatten(1), vals.flatten(1), reduce="amin")
+    centre, inside = idx[..., 4], ok[..., 4]
+    return inside & (z <= zbuf.gather(1, centre) + tol)
+
+
+def _bilinear(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Sample (V, C, H, W) at pixel coordinates uv (V, M, 2) (centres at +0.5): (V, M, C)."""
+    H, W = img.shape[-2:]
+    g = torch.stack([uv[..., 0] / W * 2 - 1, uv[..., 1] / H * 2 - 1], -1).clamp(-2, 2)
+    return F.grid_sample(img, g[:, :, None], align_corners=False, padding_mode="border")[..., 0].transpose(1, 2)
+
+
+def _spread(colours: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+    """(M,) colour spread across the views that see each point: the mean absolute deviation from their median
+    colour, averaged over the channels, the most deviant view left out when ≥ 4 see the point (a highlight or
+    an occluder one view alone sees); NaN with no view."""
+    c = torch.where(seen[..., None], colours, torch.full_like(colours, float("nan")))
+    med = c.nanmedian(dim=0).values
+    dev = (c - med).abs().mean(-1)  # (V, M), NaN where unseen
+    n = seen.sum(0)
+    total = torch.nan_to_num(dev, nan=0.0).sum(0)
+    worst = torch.nan_to_num(dev, nan=0.0).max(0).values
+    drop = n >= 4
+    total = torch.where(drop, total - worst, total)
+    count = torch.where(drop, n - 1, n).clamp(min=1)
+    return torch.where(n > 0, total / count, torch.full_like(total, float("nan")))
+
+
+def photo_carve(inside: np.ndarray, P: torch.Tensor, images: torch.Tensor, masks: torch.Tensor,
+                sizes: torch.Tensor | None = None, min_views: int = 2, spread_floor: float = 0.01,
+                spread_ratio: float = 6.0, max_sweeps: int = 96, min_cos: float = 0.2,
+                pixels_per_cell: float = 2.0, contrast_weight: float = 1.0) -> PhotoCarveResult:
+    """The photo hull of the (R+1)³ lattice ``inside`` [x, y, z] over [-1, 1]³ (the visual hull) from views
+    with projections ``P`` (V, 3, 4), ``images`` (V, H, W, 3) in [0, 1] and ``masks`` (V, H, W).
+
+    A surface point is carved when ≥ ``min_views`` views see it, unoccluded and at least ``min_cos`` head-on,
+    inside their masks and photos, and their colours spread (:func:`_spread`) more than max(``spread_floor``,
+    ``spread_ratio`` × the first sweep's median spread). ``sizes`` (V, 2): each view's own (width, height) on a
+    padded canvas.
+    """
+    V, H, W = masks.shape
+    if inside.ndim != 3 or len(set(inside.shape)) != 1:
+        raise ValueError(f"photo_carve: inside must be a cubic (R+1)³ lattice, got shape {inside.shape}")
+    if P.shape != (V, 3, 4) or images.shape != (V, H, W, 3):
+        raise ValueError(f"photo_carve: P {tuple(P.shape)} and images {tuple(images.shape)} do not match masks "
+                         f"{tuple(masks.shape)}")
+    R = inside.shape[0] - 1
+    dev = masks.device
+    pts_all = grid_points(R, device=dev).view(R + 1, R + 1, R + 1, 3)
+    inside = inside.copy()
+    cell = 2.0 / R
+
+    surf_idx = np.argwhere(_surface(inside))
+    if len(surf_idx) == 0:  # an empty hull
+        return PhotoCarveResult(inside, 0, 0, 0, float("nan"), 1)
+    pool = _pool_factor(pts_all, surf_idx, P, cell, pixels_per_cell)
+    scale = torch.tensor([1.0 / pool, 1.0 / pool, 1.0], device=dev)[None, :, None]
+    P_low = P * scale
+    img_low = F.avg_pool2d(images.permute(0, 3, 1, 2), pool, ceil_mode=True)
+    contrast = _local_contrast(img_low)
+    mask_low = F.avg_pool2d(masks[:, None], pool, ceil_mode=True)[:, 0]
+    if sizes is not None:  # the padding of a smaller view is outside it
+        w_v = torch.div(sizes[:, 0], pool, rounding_mode="floor")
+        h_v = torch.div(sizes[:, 1], pool, rounding_mode="floor")
+        hh, ww = mask_low.shape[1:]
+        in_view = (torch.arange(ww, device=dev)[None, None] < w_v[:, None, None]) \
+            & (torch.arange(hh, device=dev)[None, :, None] < h_v[:, None, None])
+        mask_low = mask_low * in_view
+    # a point seen within a pixel of a silhouette reads colours mixed with the background
+    mask_low = -F.max_pool2d(-mask_low[:, None], 3, stride=1, padding=1)[:, 0]
+    h, w = mask_low.shape[1:]
+
+    def project_idx(idx: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        p = pts_all[tuple(torch.from_numpy(idx).to(dev).T)]
+        return project(p, P_low)
+
+    silhouettes = _coverage(*project_idx(surf_idx), h, w)
+    threshold, carved_total, restored_total, sweeps = None, 0, 0, 0
+    frozen = np.zeros_like(inside)  # carves once undone stay
+    while sweeps < max_sweeps:
+        sweeps += 1
+        surf_idx = np.argwhere(_surface(inside))
+        spread, texture = _surface_spread(inside, surf_idx, pts_all, P_low, img_low, contrast, mask_low, cell,
+                                          min_views, min_cos)
+        if threshold is None:
+            finite = spread[torch.isfinite(spread)]
+            if finite.numel() == 0:  # no surface point seen by enough views: nothing to judge
+                return PhotoCarveResult(inside, 0, 0, sweeps, float("nan"), pool)
+            threshold = max(spread_floor, spread_ratio * float(finite.median()))
+        over = torch.nan_to_num(spread - contrast_weight * texture, nan=0.0) > threshold
+        over &= ~torch.from_numpy(frozen[tuple(surf_idx.T)]).to(over.device)
+        cand = surf_idx[over.cpu().numpy()]
+        if len(cand) == 0:
+            break
+        inside[tuple(cand.T)] = False
+        undone = _reopened(inside, cand, spread[over], project_idx, silhouettes, h, w)
+        inside[tuple(undone.T)] = True
+        frozen[tuple(undone.T)] = True
+        carved_total += len(cand) - len(undone)
+        restored_total += len(undone)
+        if len(undone) == len(cand):  # nothing changed: the next sweep would find the same
+            break
+    return PhotoCarveResult(inside, carved_total, restored_total, sweeps, threshold, pool)
+
+
+def _pool_factor(pts_all: torch.Tensor, surf_idx: np.ndarray, P: torch.Tensor, cell: float,
+                 pixels_per_cell: float) -> int:
+    """Image reduction factor at which a lattice cell spans at most ``pixels_per_cell`` pixels (95th percentile
+    over the surface points and views): then the 3×3 splats of neighbouring points leave no gap in a z-buffer."""
+    p = pts_all[tuple(torch.from_numpy(surf_idx[:: max(1, len(surf_idx) // 512)]).to(P.device).T)]
+    uv0, z0 = project(p, P)
+    uv1, _ = project(p + torch.tensor([cell, 0.0, 0.0], device=P.device), P)
+    uv2, _ = project(p + torch.tensor([0.0, cell, 0.0], device=P.device), P)
+    step = 0.5 * ((uv1 - uv0).norm(dim=-1) + (uv2 - uv0).norm(dim=-1))
+    step = step[z0 > 0]
+    if step.numel() == 0:
+        return 1
+    return max(1, math.ceil(float(torch.quantile(step, 0.95)) / pixels_per_cell))
+
+
+def _surface_spread(inside: np.ndarray, surf_idx: np.ndarray, pts_all: torch.Tensor, P: torch.Tensor,
+                    images: torch.Tensor, contrast: torch.Tensor, masks: torch.Tensor, cell: float, min_views: int,
+                    min_cos: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(M,) colour spread at the surface points ``surf_idx`` across the views that see them (NaN: fewer than
+    ``min_views``), and (M,) the photos' local contrast there (:func:`_local_contrast`, median over those
+    views)."""
+    dev = P.device
+    pts = pts_all[tuple(torch.from_numpy(surf_idx).to(dev).T)]
+    h, w = masks.shape[1:]
+    uv, z = project(pts, P)
+    seen = _visible(uv, z, h, w, tol=1.5 * cell * _depth_scale(P))
+    normals = torch.from_numpy(_outward_normals(inside, surf_idx)).to(dev, torch.float32)
+    centres = -torch.linalg.solve(P[:, :, :3], P[:, :, 3:])[..., 0]  # (V, 3)
+    to_cam = centres[:, None] - pts[None]
+    cos = (to_cam / to_cam.norm(dim=-1, keepdim=True) * normals[None]).sum(-1)
+    in_mask = _bilinear(masks[:, None], uv)[..., 0] > 0.5
+    seen &= (cos >= min_cos) & in_mask
+    spread = _spread(_bilinear(images, uv), seen)
+    for shift in NORMAL_SHIFTS:  # the lattice point is up to half a cell off the surface it stands for
+        uv_s, _ = project(pts + shift * cell * normals, P)
+        spread = torch.fmin(spread, _spread(_bilinear(images, uv_s), seen))
+    local = torch.where(seen, _bilinear(contrast, uv)[..., 0], torch.full_like(seen, float("nan"), dtype=uv.dtype))
+    enough = seen.sum(0) >= min_views
+    nan = torch.full_like(spread, float("nan"))
+    return torch.where(enough, spread, nan), torch.where(enough, local.nanmedian(0).values, nan)
+
+
+def _local_contrast(images: torch.Tensor) -> torch.Tensor:
+    """(V, 1, H, W): the mean absolute deviation of each pixel's colour from its 3×3 mean, averaged over 3×3 and
+    the channels: what a point's colour may change by when it is read a pixel off, on a textured surface."""
+    dev = (images - F.avg_pool2d(images, 3, stride=1, padding=1, count_include_pad=False)).abs().mean(1, keepdim=True)
+    return F.avg_pool2d(dev, 3, stride=1, padding=1, count_include_pad=False)
+
+
+def _depth_scale(P: torch.Tensor) -> torch.Tensor:
+    """(V, 1) factor from a distance to the projection's third coordinate (the norm of P's third row's 3-vector:
+    z is depth × that)."""
+    return P[:, 2, :3].norm(dim=-1, keepdim=True)
+
+
+def _reopened(inside: np.ndarray, cand: np.ndarray, cand_spread: torch.Tensor, project_idx,
+              silhouettes: torch.Tensor, h: int, w: int) -> np.ndarray:
+    """The carved points ``cand`` to put back so that every view's silhouette stays covered: for each pixel the
+    carved lattice no longer covers, of the carved points whose splat covered it the one whose colours agreed
+    best (``cand_spread``)."""
+    cov = _coverage(*project_idx(np.argwhere(_surface(inside))), h, w)
+    lost = silhouettes & ~cov
+    if not lost.any():
+        return cand[:0]
+    uv, z = project_idx(cand)
+    idx, ok = _splat_index(uv, h, w)
+    hit = ok & (z > 0)[..., None] & lost.gather(1, idx.flatten(1)).view(idx.shape)
+    key = idx + torch.arange(idx.shape[0], device=idx.device)[:, None, None] * (h * w)
+    spread = cand_spread.to(lost.device)[None, :, None].expand_as(idx)
+    best = torch.full((lost.numel(),), float("inf"), device=lost.device)
+    best.scatter_reduce_(0, key[hit], spread[hit], reduce="amin")
+    chosen = hit & (spread <= best[key])
+    return cand[chosen.any(-1).any(0).cpu().numpy()]

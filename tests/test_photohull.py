@@ -1,0 +1,129 @@
+"""dvr/photohull.py: the photo hull opens a cup's inside, which no silhouette carves, keeps the wall, and never
+opens a silhouette."""
+
+import numpy as np
+import pytest
+import torch
+
+from dvr.cameras import to_sfm
+from dvr.data import load_scene
+from dvr.hull import grid_points, hull_inside
+from dvr.photohull import _coverage, _surface, photo_carve
+from tests.conftest import small_scene
+
+RES = 64
+LIGHT = {"kind": "lambertian", "ambient": 0.5, "lights": [[0.4, 0.5, 0.8, 0.6]]}
+CUP = {"kind": "difference", "parts": [
+    {"kind": "cylinder", "radius": 0.5, "minor": 0.04, "size": [0.0, 0.0, 0.4]},
+    {"kind": "cylinder", "radius": 0.36, "minor": 0.03, "size": [0.0, 0.0, 0.45], "center": [0.0, 0.0, 0.2]}]}
+
+
+@pytest.fixture(scope="module")
+def cup(tmp_path_factory):
+    """An open cup glazed like the bench's mug (weak texture, one light), 24 views of 96×72 looking down 30-70°:
+    its scene data and visual hull."""
+    from pipeline.synth import write_scene
+
+    ws = tmp_path_factory.mktemp("cup")
+    scene = small_scene(shape=CUP, albedo={"kind": "noise", "scale": 1.5, "contrast": 0.15}, lighting=LIGHT,
+                        cameras={"n_views": 24, "width": 96, "height": 72, "elevation": [30, 70], "rings": 2})
+    write_scene(scene, ws)
+    data = load_scene(ws, torch.device("cpu"), use_depth=False)
+    inside = hull_inside(data.P, data.masks, RES)
+    return scene, data, inside
+
+
+def _true_sdf(scene, data):
+    """Signed distance (negative inside the solid) of every lattice point, and the lattice points in the world."""
+    from pipeline.synth.render import sdf
+
+    world = to_sfm(grid_points(RES).double().numpy(), data.cams.scale_mat)
+    d = sdf(scene.shape, torch.from_numpy(world)).numpy()
+    return d.reshape((RES + 1,) * 3), world.reshape((RES + 1,) * 3 + (3,))
+
+
+def test_opens_the_cups_inside_and_keeps_its_wall(cup):
+    scene, data, inside = cup
+    result = photo_carve(inside, data.P, data.images, data.masks, data.sizes)
+    d, world = _true_sdf(scene, data)
+    cell = 2.0 / RES * np.linalg.norm(data.cams.scale_mat[:3, 0])
+    hollow = (np.hypot(world[..., 0], world[..., 1]) < 0.3) & (world[..., 2] > -0.1) & (world[..., 2] < 0.35)
+    assert inside[hollow].mean() > 0.99  # the visual hull fills the cup: nothing but colour can open it
+    assert (~result.inside[hollow & inside]).mean() > 0.5
+    deep = d < -1.5 * cell  # the solid's points more than a cell and a half from its surface
+    assert (inside & deep & ~result.inside).sum() == 0
+    assert result.carved > 0 and result.sweeps > 1 and np.isfinite(result.threshold)
+
+
+def test_a_convex_object_loses_no_solid(tmp_path):
+    from pipeline.synth import write_scene
+
+    scene = small_scene(shape={"kind": "sphere", "radius": 0.6}, albedo={"kind": "noise", "scale": 6.0,
+                                                                        "contrast": 0.6}, lighting=LIGHT,
+                        cameras={"n_views": 16, "width": 96, "height": 72, "elevation": [-20, 50], "rings": 2})
+    write_scene(scene, tmp_path)
+    data = load_scene(tmp_path, torch.device("cpu"), use_depth=False)
+    inside = hull_inside(data.P, data.masks, RES)
+    result = photo_carve(inside, data.P, data.images, data.masks, data.sizes)
+    d, _ = _true_sdf(scene, data)
+    cell = 2.0 / RES * np.linalg.norm(data.cams.scale_mat[:3, 0])
+    assert (inside & (d < -1.5 * cell) & ~result.inside).sum() == 0
+
+
+def test_carving_never_opens_a_silhouette(cup):
+    """Photos of noise, different in every view: every point disagrees, yet every view's silhouette stays
+    covered by the carved lattice (what training's mask loss needs)."""
+    _, data, inside = cup
+    noise = torch.rand(data.images.shape, generator=torch.Generator().manual_seed(0))
+    result = photo_carve(inside, data.P, noise, data.masks, data.sizes, spread_ratio=0.0, contrast_weight=0.0)
+    assert result.restored > 0 and result.inside.any()
+    pts = grid_points(RES)
+    before = np.argwhere(_surface(inside))
+    after = np.argwhere(_surface(result.inside))
+    from dvr.cameras import project
+
+    P = data.P / result.pool * torch.tensor([1.0, 1.0, result.pool])[None, :, None]
+    h, w = -(-data.masks.shape[1] // result.pool), -(-data.masks.shape[2] // result.pool)
+    lattice = pts.view(RES + 1, RES + 1, RES + 1, 3)
+    cov_before = _coverage(*project(lattice[tuple(torch.from_numpy(before).T)], P), h, w)
+    cov_after = _coverage(*project(lattice[tuple(torch.from_numpy(after).T)], P), h, w)
+    assert not (cov_before & ~cov_after).any()
+
+
+def test_an_empty_hull_and_unseen_points_change_nothing(cup):
+    _, data, inside = cup
+    empty = photo_carve(np.zeros_like(inside), data.P, data.images, data.masks, data.sizes)
+    assert empty.carved == 0 and not empty.inside.any()
+    unseen = photo_carve(inside, data.P, data.images, data.masks, data.sizes, min_views=len(data.P) + 1)
+    assert unseen.carved == 0 and np.array_equal(unseen.inside, inside) and np.isnan(unseen.threshold)
+
+
+def test_bad_input(cup):
+    _, data, inside = cup
+    with pytest.raises(ValueError, match="cubic"):
+        photo_carve(inside[:, :, :-1], data.P, data.images, data.masks)
+    with pytest.raises(ValueError, match="do not match"):
+        photo_carve(inside, data.P[:-1], data.images, data.masks)
+    with pytest.raises(ValueError, match="do not match"):
+        photo_carve(inside, data.P, data.images[..., :1], data.masks)
+
+
+def test_trainer_starts_from_the_photo_hull(cup, tmp_path):
+    """``photo_hull``: the initial occupancy is the photo hull's (free in the cup's inside, along its axis), its
+    counts in model/photo_hull.json; without it the visual hull's (occupied all along the axis)."""
+    import json
+
+    from dvr.trainer import TrainConfig, Trainer
+
+    _, data, _ = cup
+    axis = torch.stack([torch.zeros(9), torch.zeros(9), torch.linspace(0.1, 0.35, 9)], 1)  # the cup's inside
+    inits = {}
+    for on in (False, True):
+        cfg = TrainConfig(photo_hull=on, photo_hull_res=RES, hull_res=RES, fit_frame=False, progress=False)
+        trainer = Trainer(cfg, data, tmp_path / str(on))
+        with torch.no_grad():
+            inits[on] = trainer.model.occupancy(axis).reshape(-1)
+    counts = json.loads((tmp_path / "True" / "photo_hull.json").read_text())
+    assert counts["carved"] > 0 and counts["sweeps"] > 1
+    assert not (tmp_path / "False" / "photo_hull.json").exists()
+    assert (inits[False] > 0).all() and (inits[True] < 0).any()
