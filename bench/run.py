@@ -72,6 +72,10 @@ ABLATIONS = {
     "view selection": (["--texture.view-selection"], {}),  # the bake: one view per face, Potts smoothness
     "final adjustment": (["--cameras.final-passes", "3"], {}),  # SfM: final robust bundle adjustment passes
     "photo hull": (["--train.photo-hull"], {}),  # start from the photo hull (a cup's inside)
+    "photo hull, contrast 2": (["--train.photo-hull", "--train.photo-contrast", "2"], {}),
+    # a capture that looks into the cup: the top ring at 80° instead of 55°
+    "views to 80°": ([], {"cameras": {"elevation": [15, 80]}}),
+    "views to 80°, photo hull": (["--train.photo-hull"], {"cameras": {"elevation": [15, 80]}}),
 }
 
 

@@ -7,10 +7,12 @@ that see a point see different parts of the cup's inside, so their colours sprea
 agree. Each sweep finds the hull's surface voxels, which views see them (a z-buffer of the surface voxels),
 and carves those whose colours spread more than a threshold; the next sweep sees the layer below. The
 threshold is relative to the first sweep's median spread (the noise, exposure and texture of this capture)
-with an absolute floor; a carve that would open a hole in any silhouette is undone.
+with an absolute floor, plus the photos' local contrast at the point (a lattice point stands for a surface up
+to half a cell away: on texture that alone spreads its colours); a carve that would open a hole in any
+silhouette is undone. Space no view sees stays (a cup's floor that no camera looks down onto).
 
-All on a coarse lattice at reduced image resolution (a lattice cell ≈ 1.5 pixels); the result is the
-initial occupancy of training (:class:`dvr.trainer.Trainer`).
+All on a lattice at reduced image resolution (a lattice cell at most 2 pixels, so the z-buffer's 3×3 splats
+close); the result is the initial occupancy of training (:class:`dvr.trainer.Trainer`, ``photo_hull``).
 """
 
 from __future__ import annotations
@@ -121,8 +123,8 @@ def photo_carve(inside: np.ndarray, P: torch.Tensor, images: torch.Tensor, masks
 
     A surface point is carved when ≥ ``min_views`` views see it, unoccluded and at least ``min_cos`` head-on,
     inside their masks and photos, and their colours spread (:func:`_spread`) more than max(``spread_floor``,
-    ``spread_ratio`` × the first sweep's median spread). ``sizes`` (V, 2): each view's own (width, height) on a
-    padded canvas.
+    ``spread_ratio`` × the first sweep's median spread) + ``contrast_weight`` × the photos' local contrast there
+    (:func:`_local_contrast`). ``sizes`` (V, 2): each view's own (width, height) on a padded canvas.
     """
     V, H, W = masks.shape
     if inside.ndim != 3 or len(set(inside.shape)) != 1:

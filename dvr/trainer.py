@@ -168,8 +168,11 @@ class TrainConfig:
     """Lattice resolution of the photo hull: its cell must be finer than the object's thin parts (a cup's wall,
     a handle), whose every point is a surface point at a coarse one."""
     photo_spread: float = 0.005
-    """Colour spread (colours in [0, 1]; the median absolute deviation across the views that see a point) above
-    which the photo hull carves a point; 6 × this capture's median spread when that is higher."""
+    """Colour spread (colours in [0, 1]; the mean absolute deviation from the median colour across the views that
+    see a point) above which the photo hull carves a point; 6 × this capture's median spread when that is higher."""
+    photo_contrast: float = 1.0
+    """The photo hull's carving threshold rises by this × the photos' local contrast at the point (a textured
+    surface read a pixel off disagrees more than a smooth one)."""
     carve_min_views: int = 1
     """Views that must see a point outside their mask before it is carved."""
     contact_band: float = 0.05
@@ -350,7 +353,8 @@ class Trainer:
         inside = hull_inside(data.P, data.masks, res, cfg.carve_min_views, ground=data.cams.ground,
                              sizes=data.sizes, contact_band=cfg.contact_band)
         if cfg.photo_hull:
-            result = photo_carve(inside, data.P, data.images, data.masks, data.sizes, spread_floor=cfg.photo_spread)
+            result = photo_carve(inside, data.P, data.images, data.masks, data.sizes, spread_floor=cfg.photo_spread,
+                                 contrast_weight=cfg.photo_contrast)
             inside = result.inside
             summary = {k: (v if math.isfinite(v) else None) for k, v in vars(result).items() if k != "inside"}
             (self.out / "photo_hull.json").write_text(json.dumps(summary, indent=1))
