@@ -42,6 +42,8 @@ class PhotoCarveResult:
     """Lattice points carved (kept carved after the silhouette check)."""
     restored: int
     """Carves undone because they opened a silhouette."""
+    shallow: int
+    """Carved points put back because their carved region reached less than ``min_depth`` into the hull."""
     sweeps: int
     """Sweeps run."""
     threshold: float
@@ -117,14 +119,17 @@ def _spread(colours: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
 def photo_carve(inside: np.ndarray, P: torch.Tensor, images: torch.Tensor, masks: torch.Tensor,
                 sizes: torch.Tensor | None = None, min_views: int = 2, spread_floor: float = 0.01,
                 spread_ratio: float = 6.0, max_sweeps: int = 96, min_cos: float = 0.2,
-                pixels_per_cell: float = 2.0, contrast_weight: float = 1.0) -> PhotoCarveResult:
+                pixels_per_cell: float = 2.0, contrast_weight: float = 1.0,
+                min_depth: float = 0.1) -> PhotoCarveResult:
     """The photo hull of the (R+1)³ lattice ``inside`` [x, y, z] over [-1, 1]³ (the visual hull) from views
     with projections ``P`` (V, 3, 4), ``images`` (V, H, W, 3) in [0, 1] and ``masks`` (V, H, W).
 
     A surface point is carved when ≥ ``min_views`` views see it, unoccluded and at least ``min_cos`` head-on,
     inside their masks and photos, and their colours spread (:func:`_spread`) more than max(``spread_floor``,
     ``spread_ratio`` × the first sweep's median spread) + ``contrast_weight`` × the photos' local contrast there
-    (:func:`_local_contrast`). ``sizes`` (V, 2): each view's own (width, height) on a padded canvas.
+    (:func:`_local_contrast`). A carved region that reaches less than ``min_depth`` (lattice units: the working
+    sphere's radius is 1) into the hull is put back: nibbles of a textured surface, not a concavity.
+    ``sizes`` (V, 2): each view's own (width, height) on a padded canvas.
     """
     V, H, W = masks.shape
     if inside.ndim != 3 or len(set(inside.shape)) != 1:
@@ -135,12 +140,12 @@ def photo_carve(inside: np.ndarray, P: torch.Tensor, images: torch.Tensor, masks
     R = inside.shape[0] - 1
     dev = masks.device
     pts_all = grid_points(R, device=dev).view(R + 1, R + 1, R + 1, 3)
-    inside = inside.copy()
+    start, inside = inside, inside.copy()
     cell = 2.0 / R
 
     surf_idx = np.argwhere(_surface(inside))
     if len(surf_idx) == 0:  # an empty hull
-        return PhotoCarveResult(inside, 0, 0, 0, float("nan"), 1)
+        return PhotoCarveResult(inside, 0, 0, 0, 0, float("nan"), 1)
     pool = _pool_factor(pts_all, surf_idx, P, cell, pixels_per_cell)
     scale = torch.tensor([1.0 / pool, 1.0 / pool, 1.0], device=dev)[None, :, None]
     P_low = P * scale
@@ -173,7 +178,7 @@ def photo_carve(inside: np.ndarray, P: torch.Tensor, images: torch.Tensor, masks
         if threshold is None:
             finite = spread[torch.isfinite(spread)]
             if finite.numel() == 0:  # no surface point seen by enough views: nothing to judge
-                return PhotoCarveResult(inside, 0, 0, sweeps, float("nan"), pool)
+                return PhotoCarveResult(inside, 0, 0, 0, sweeps, float("nan"), pool)
             threshold = max(spread_floor, spread_ratio * float(finite.median()))
         over = torch.nan_to_num(spread - contrast_weight * texture, nan=0.0) > threshold
         over &= ~torch.from_numpy(frozen[tuple(surf_idx.T)]).to(over.device)
@@ -188,7 +193,23 @@ def photo_carve(inside: np.ndarray, P: torch.Tensor, images: torch.Tensor, masks
         restored_total += len(undone)
         if len(undone) == len(cand):  # nothing changed: the next sweep would find the same
             break
-    return PhotoCarveResult(inside, carved_total, restored_total, sweeps, threshold, pool)
+    shallow = _shallow_carves(start, inside, min_depth / cell)
+    inside |= shallow
+    return PhotoCarveResult(inside, carved_total - int(shallow.sum()), restored_total, int(shallow.sum()), sweeps,
+                            threshold, pool)
+
+
+def _shallow_carves(hull: np.ndarray, carved_hull: np.ndarray, min_cells: float) -> np.ndarray:
+    """The carved points (in ``hull``, not in ``carved_hull``) whose connected carved region reaches less than
+    ``min_cells`` into the hull at its deepest (distance to the hull's outside): a textured surface's nibbles,
+    not a concavity."""
+    carved = hull & ~carved_hull
+    if not carved.any():
+        return carved
+    depth = ndimage.distance_transform_edt(np.pad(hull, 1))[1:-1, 1:-1, 1:-1]
+    labels, n = ndimage.label(carved)
+    deepest = np.asarray(ndimage.maximum(depth, labels, index=np.arange(1, n + 1)))
+    return carved & np.concatenate([[False], deepest < min_cells])[labels]
 
 
 def _pool_factor(pts_all: torch.Tensor, surf_idx: np.ndarray, P: torch.Tensor, cell: float,

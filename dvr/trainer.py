@@ -173,6 +173,9 @@ class TrainConfig:
     photo_contrast: float = 1.0
     """The photo hull's carving threshold rises by this × the photos' local contrast at the point (a textured
     surface read a pixel off disagrees more than a smooth one)."""
+    photo_min_depth: float = 0.1
+    """The photo hull puts back a carved region that reaches less than this (working-sphere radii) into the
+    visual hull: the nibbles a textured surface loses to its own texture, not a concavity (0 keeps every carve)."""
     carve_min_views: int = 1
     """Views that must see a point outside their mask before it is carved."""
     contact_band: float = 0.05
@@ -354,7 +357,7 @@ class Trainer:
                              sizes=data.sizes, contact_band=cfg.contact_band)
         if cfg.photo_hull:
             result = photo_carve(inside, data.P, data.images, data.masks, data.sizes, spread_floor=cfg.photo_spread,
-                                 contrast_weight=cfg.photo_contrast)
+                                 contrast_weight=cfg.photo_contrast, min_depth=cfg.photo_min_depth)
             inside = result.inside
             summary = {k: (v if math.isfinite(v) else None) for k, v in vars(result).items() if k != "inside"}
             (self.out / "photo_hull.json").write_text(json.dumps(summary, indent=1))

@@ -127,3 +127,43 @@ def test_trainer_starts_from_the_photo_hull(cup, tmp_path):
     assert counts["carved"] > 0 and counts["sweeps"] > 1
     assert not (tmp_path / "False" / "photo_hull.json").exists()
     assert (inits[False] > 0).all() and (inits[True] < 0).any()
+
+
+def test_shallow_carves_are_put_back_and_deep_ones_kept():
+    """A dent two cells deep in a ball's surface (a texture's nibble) comes back; a well ten cells deep (a cup's
+    inside) stays carved."""
+    from dvr.photohull import _shallow_carves
+
+    n = 41
+    g = np.indices((n,) * 3) - n // 2
+    ball = (g ** 2).sum(0) <= 18 ** 2
+    carved = ball.copy()
+    dent = (np.abs(g[0]) <= 2) & (np.abs(g[1]) <= 2) & (g[2] >= 17)  # the ball's top, 2 cells deep
+    well = (np.abs(g[0] - 10) <= 2) & (np.abs(g[1]) <= 2) & (g[2] >= 5)  # from the surface down 10 cells
+    carved[dent | well] = False
+    back = _shallow_carves(ball, carved, min_cells=5.0)
+    assert back[ball & dent].all()
+    assert not back[ball & well].any()
+    assert not back[carved].any()  # only carved points come back
+
+
+def test_a_textured_surface_keeps_its_nibbles_out(tmp_path):
+    """At a threshold low enough to nibble a textured ball (no contrast term), the carved regions that reach less
+    than ``min_depth`` into the hull are put back: most of the carving, and nearly all of it below the surface."""
+    from pipeline.synth import write_scene
+
+    scene = small_scene(shape={"kind": "sphere", "radius": 0.6}, albedo={"kind": "noise", "scale": 6.0,
+                                                                        "contrast": 0.6}, lighting=LIGHT,
+                        cameras={"n_views": 16, "width": 96, "height": 72, "elevation": [-20, 50], "rings": 2})
+    write_scene(scene, tmp_path)
+    data = load_scene(tmp_path, torch.device("cpu"), use_depth=False)
+    inside = hull_inside(data.P, data.masks, RES)
+    d, _ = _true_sdf(scene, data)
+    deep = inside & (d < -1.5 * 2.0 / RES * np.linalg.norm(data.cams.scale_mat[:3, 0]))
+    kw = {"spread_ratio": 2.0, "contrast_weight": 0.0}
+    every = photo_carve(inside, data.P, data.images, data.masks, data.sizes, min_depth=0.0, **kw)
+    kept = photo_carve(inside, data.P, data.images, data.masks, data.sizes, **kw)
+    assert every.carved > 0 and every.shallow == 0
+    assert kept.shallow > 0 and kept.carved + kept.shallow == every.carved
+    assert kept.carved <= 0.25 * every.carved
+    assert (deep & ~kept.inside).sum() <= 0.1 * (deep & ~every.inside).sum()
