@@ -96,6 +96,16 @@ def inside_logits(inside: np.ndarray, slope_cells: float = 1.0, clamp: float = 1
     return torch.from_numpy(logit.astype(np.float32)).to(device)
 
 
+def coarse_points(lattice: np.ndarray, res: int) -> np.ndarray:
+    """The (res+1)³ lattice's values read from ``lattice``, a finer (R+1)³ one over the same cube, at its nearest
+    points (exact when R is a multiple of ``res``: the coarse points are fine points)."""
+    R = lattice.shape[0] - 1
+    if lattice.ndim != 3 or len(set(lattice.shape)) != 1 or R < res or res < 1:
+        raise ValueError(f"coarse_points: need a cubic lattice of at least {res + 1}³ points, got {lattice.shape}")
+    sel = np.rint(np.arange(res + 1) * (R / res)).astype(int)
+    return lattice[np.ix_(sel, sel, sel)]
+
+
 def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1, slope_cells: float = 1.0,
                 clamp: float = 10.0, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
                 contact_band: float = 0.0) -> torch.Tensor:

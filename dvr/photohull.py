@@ -150,7 +150,6 @@ def photo_carve(inside: np.ndarray, P: torch.Tensor, images: torch.Tensor, masks
     scale = torch.tensor([1.0 / pool, 1.0 / pool, 1.0], device=dev)[None, :, None]
     P_low = P * scale
     img_low = F.avg_pool2d(images.permute(0, 3, 1, 2), pool, ceil_mode=True)
-    contrast = _local_contrast(img_low)
     mask_low = F.avg_pool2d(masks[:, None], pool, ceil_mode=True)[:, 0]
     if sizes is not None:  # the padding of a smaller view is outside it
         w_v = torch.div(sizes[:, 0], pool, rounding_mode="floor")
@@ -168,6 +167,8 @@ def photo_carve(inside: np.ndarray, P: torch.Tensor, images: torch.Tensor, masks
         return project(p, P_low)
 
     silhouettes = _coverage(*project_idx(surf_idx), h, w)
+    img_low = _one_exposure(inside, surf_idx, pts_all, P_low, img_low, mask_low, cell, min_cos)
+    contrast = _local_contrast(img_low)
     threshold, carved_total, restored_total, sweeps = None, 0, 0, 0
     frozen = np.zeros_like(inside)  # carves once undone stay
     while sweeps < max_sweeps:
@@ -227,12 +228,10 @@ def _pool_factor(pts_all: torch.Tensor, surf_idx: np.ndarray, P: torch.Tensor, c
     return max(1, math.ceil(float(torch.quantile(step, 0.95)) / pixels_per_cell))
 
 
-def _surface_spread(inside: np.ndarray, surf_idx: np.ndarray, pts_all: torch.Tensor, P: torch.Tensor,
-                    images: torch.Tensor, contrast: torch.Tensor, masks: torch.Tensor, cell: float, min_views: int,
-                    min_cos: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(M,) colour spread at the surface points ``surf_idx`` across the views that see them (NaN: fewer than
-    ``min_views``), and (M,) the photos' local contrast there (:func:`_local_contrast`, median over those
-    views)."""
+def _surface_views(inside: np.ndarray, surf_idx: np.ndarray, pts_all: torch.Tensor, P: torch.Tensor,
+                   masks: torch.Tensor, cell: float, min_cos: float) -> tuple[torch.Tensor, ...]:
+    """The surface points ``surf_idx``: (M, 3) positions, (V, M, 2) their pixels, (V, M) whether each view sees
+    them (unoccluded, at least ``min_cos`` head-on, inside its mask) and (M, 3) their outward normals."""
     dev = P.device
     pts = pts_all[tuple(torch.from_numpy(surf_idx).to(dev).T)]
     h, w = masks.shape[1:]
@@ -243,7 +242,57 @@ def _surface_spread(inside: np.ndarray, surf_idx: np.ndarray, pts_all: torch.Ten
     to_cam = centres[:, None] - pts[None]
     cos = (to_cam / to_cam.norm(dim=-1, keepdim=True) * normals[None]).sum(-1)
     in_mask = _bilinear(masks[:, None], uv)[..., 0] > 0.5
-    seen &= (cos >= min_cos) & in_mask
+    return pts, uv, seen & (cos >= min_cos) & in_mask, normals
+
+
+def _one_exposure(inside: np.ndarray, surf_idx: np.ndarray, pts_all: torch.Tensor, P: torch.Tensor,
+                  images: torch.Tensor, masks: torch.Tensor, cell: float, min_cos: float) -> torch.Tensor:
+    """The photos (V, 3, H, W) divided by their views' colour gains (:func:`_view_gains`, fitted on the hull's
+    surface points), so that a view's exposure or white balance alone does not make colours disagree; as they are
+    when that does not lower the surface points' median spread (a steady exposure: the fit's own error)."""
+    _, uv, seen, _ = _surface_views(inside, surf_idx, pts_all, P, masks, cell, min_cos)
+    colours = _bilinear(images, uv)
+    gains = _view_gains(colours, seen)
+
+    def median_spread(c: torch.Tensor) -> float:
+        spread = _spread(c, seen)
+        spread = spread[torch.isfinite(spread)]
+        return float(spread.median()) if spread.numel() else math.inf
+
+    if median_spread(colours / gains[:, None]) < median_spread(colours):
+        return images / gains[:, :, None, None]
+    return images
+
+
+def _view_gains(colours: torch.Tensor, seen: torch.Tensor, rounds: int = 30, dark: float = 0.05) -> torch.Tensor:
+    """(V, 3) each view's colour gains against the others (exposure, white balance), fitted with the points'
+    colours: log colour = log gain of the view + log colour of the point, alternating means over the points seen
+    by ≥ 2 views and brighter than ``dark``, each round on the better-agreeing half of them (not a lid's, whose
+    views see different places). Means, not medians: views that share few points (one ring of a capture against
+    another) are still tied together. 1 where a view sees no such point; their geometric mean is 1."""
+    ok = seen[..., None] & (colours > dark) & (seen.sum(0) >= 2)[None, :, None]
+    logc = torch.where(ok, colours.clamp(min=dark).log(), torch.zeros_like(colours))
+    w = ok.to(colours.dtype)
+    use = torch.ones(colours.shape[1], dtype=torch.bool, device=colours.device)
+    log_g = torch.zeros(colours.shape[0], colours.shape[-1], dtype=colours.dtype, device=colours.device)
+    for _ in range(rounds):
+        wu = w * use[None, :, None]
+        log_a = ((logc - log_g[:, None]) * wu).sum(0) / wu.sum(0).clamp(min=1)  # (M, 3) the points' colours
+        log_g = ((logc - log_a[None]) * wu).sum(1) / wu.sum(1).clamp(min=1)  # (V, 3)
+        log_g = log_g - log_g.mean(0)
+        resid = ((logc - log_g[:, None] - log_a[None]).abs() * w).sum((0, 2)) / w.sum((0, 2)).clamp(min=1)  # (M,)
+        seen2 = w.sum((0, 2)) > 0
+        use = seen2 & (resid <= resid[seen2].median()) if seen2.any() else seen2
+    return log_g.exp()
+
+
+def _surface_spread(inside: np.ndarray, surf_idx: np.ndarray, pts_all: torch.Tensor, P: torch.Tensor,
+                    images: torch.Tensor, contrast: torch.Tensor, masks: torch.Tensor, cell: float, min_views: int,
+                    min_cos: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(M,) colour spread at the surface points ``surf_idx`` across the views that see them (NaN: fewer than
+    ``min_views``), and (M,) the photos' local contrast there (:func:`_local_contrast`, median over those
+    views)."""
+    pts, uv, seen, normals = _surface_views(inside, surf_idx, pts_all, P, masks, cell, min_cos)
     spread = _spread(_bilinear(images, uv), seen)
     for shift in NORMAL_SHIFTS:  # the lattice point is up to half a cell off the surface it stands for
         uv_s, _ = project(pts + shift * cell * normals, P)

@@ -23,7 +23,7 @@ from .cameras import in_contact_band, plane_height
 from .data import RaySampler, SceneData
 from .device import resolve_device
 from .fields import Field, FieldConfig, finite_difference_normals, make_field
-from .hull import carve_along_rays, hull_bounding_sphere, hull_inside, inside_logits, outside_hull
+from .hull import carve_along_rays, coarse_points, hull_bounding_sphere, hull_inside, inside_logits, outside_hull
 from .implicit import implicit_depth
 from .march import INSIDE, MISS, SurfaceResult, find_surface
 from .photohull import photo_carve
@@ -349,19 +349,23 @@ class Trainer:
         self.skipped = 0
 
     def _initial_logits(self) -> torch.Tensor:
-        """The visual hull's logit volume, or with ``photo_hull`` the photo hull's (at its own resolution, with
-        the same slope in space)."""
+        """The visual hull's logit volume at ``hull_res``; with ``photo_hull``, less what the photo hull carves at
+        its own, finer lattice (where it carves nothing, the visual hull's volume exactly)."""
         cfg, data = self.cfg, self.data
-        res = cfg.photo_hull_res if cfg.photo_hull else cfg.hull_res
-        inside = hull_inside(data.P, data.masks, res, cfg.carve_min_views, ground=data.cams.ground,
-                             sizes=data.sizes, contact_band=cfg.contact_band)
+
+        def visual_hull(res: int) -> np.ndarray:
+            return hull_inside(data.P, data.masks, res, cfg.carve_min_views, ground=data.cams.ground,
+                               sizes=data.sizes, contact_band=cfg.contact_band)
+
+        inside = visual_hull(cfg.hull_res)
         if cfg.photo_hull:
-            result = photo_carve(inside, data.P, data.images, data.masks, data.sizes, spread_floor=cfg.photo_spread,
+            fine = visual_hull(cfg.photo_hull_res)
+            result = photo_carve(fine, data.P, data.images, data.masks, data.sizes, spread_floor=cfg.photo_spread,
                                  contrast_weight=cfg.photo_contrast, min_depth=cfg.photo_min_depth)
-            inside = result.inside
+            inside &= ~coarse_points(fine & ~result.inside, cfg.hull_res)
             summary = {k: (v if math.isfinite(v) else None) for k, v in vars(result).items() if k != "inside"}
             (self.out / "photo_hull.json").write_text(json.dumps(summary, indent=1))
-        return inside_logits(inside, slope_cells=res / cfg.hull_res, device=data.masks.device)
+        return inside_logits(inside, device=data.masks.device)
 
     # ----------------------------------------------------------------- checkpoints
     @property

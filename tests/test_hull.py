@@ -54,3 +54,20 @@ def test_carve_along_rays_frees_only_the_segment_in_front():
     assert (out[R // 2, :, R // 2] == 5.0).all()  # the second ray has nothing inside the sphere to carve
     assert (out != vol).sum() == (line != 5.0).sum()  # nothing else changed
     assert torch.equal(carve_along_rays(vol, o, d, torch.zeros(2)), vol)
+
+
+def test_coarse_points_are_the_fine_lattices_points(small_ws):
+    """A coarse lattice read from a finer one is the coarse lattice itself where the resolutions divide (the
+    visual hull at 32 from the one at 64), the nearest points where they do not; bad input is refused."""
+    from dvr.hull import coarse_points, hull_inside
+
+    data = load_scene(small_ws, torch.device("cpu"))
+    fine = hull_inside(data.P, data.masks, 64)
+    assert np.array_equal(coarse_points(fine, 32), hull_inside(data.P, data.masks, 32))
+    assert np.array_equal(coarse_points(fine, 64), fine)
+    ramp = np.broadcast_to(np.arange(11)[:, None, None], (11, 11, 11))
+    assert coarse_points(ramp, 4)[:, 0, 0].tolist() == [0, 2, 5, 8, 10]  # 2.5 → 2, 7.5 → 8 (round half to even)
+    with pytest.raises(ValueError, match="cubic lattice"):
+        coarse_points(fine, 65)
+    with pytest.raises(ValueError, match="cubic lattice"):
+        coarse_points(fine[:, :, :-1], 32)

@@ -1,6 +1,8 @@
 """dvr/photohull.py: the photo hull opens a cup's inside, which no silhouette carves, keeps the wall, and never
 opens a silhouette."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -53,6 +55,25 @@ def test_opens_the_cups_inside_and_keeps_its_wall(cup):
     deep = d < -1.5 * cell  # the solid's points more than a cell and a half from its surface
     assert (inside & deep & ~result.inside).sum() == 0
     assert result.carved > 0 and result.sweeps > 1 and np.isfinite(result.threshold)
+
+
+def test_opens_the_cup_under_changing_exposure(tmp_path):
+    """The cup photographed with exposure ±25 % and white balance ±8 % per view (a phone's auto exposure): the
+    photo hull compares colours after each view's gains, so it opens the cup as it does with steady exposure."""
+    from pipeline.synth import write_scene
+
+    scene = small_scene(shape=CUP, albedo={"kind": "noise", "scale": 1.5, "contrast": 0.15}, lighting=LIGHT,
+                        cameras={"n_views": 24, "width": 96, "height": 72, "elevation": [30, 70], "rings": 2},
+                        effects=[{"kind": "exposure", "amount": 0.25, "white_balance": 0.08}])
+    write_scene(scene, tmp_path)
+    data = load_scene(tmp_path, torch.device("cpu"), use_depth=False)
+    inside = hull_inside(data.P, data.masks, RES)
+    result = photo_carve(inside, data.P, data.images, data.masks, data.sizes)
+    d, world = _true_sdf(scene, data)
+    cell = 2.0 / RES * np.linalg.norm(data.cams.scale_mat[:3, 0])
+    hollow = (np.hypot(world[..., 0], world[..., 1]) < 0.3) & (world[..., 2] > -0.1) & (world[..., 2] < 0.35)
+    assert (~result.inside[hollow & inside]).mean() > 0.5
+    assert (inside & (d < -1.5 * cell) & ~result.inside).sum() == 0
 
 
 def test_a_convex_object_loses_no_solid(tmp_path):
@@ -109,24 +130,31 @@ def test_bad_input(cup):
 
 
 def test_trainer_starts_from_the_photo_hull(cup, tmp_path):
-    """``photo_hull``: the initial occupancy is the photo hull's (free in the cup's inside, along its axis), its
-    counts in model/photo_hull.json; without it the visual hull's (occupied all along the axis)."""
+    """``photo_hull``: the initial occupancy is the visual hull's less the photo hull's carving (free in the cup's
+    inside, along its axis), its counts in model/photo_hull.json; without it the visual hull's (occupied all along
+    the axis). Where the photo hull carves nothing (every view's photo the same grey: no colour disagrees), the
+    start is the visual hull's exactly, not one at the photo hull's finer lattice."""
     import json
 
     from dvr.trainer import TrainConfig, Trainer
 
     _, data, _ = cup
     axis = torch.stack([torch.zeros(9), torch.zeros(9), torch.linspace(0.1, 0.35, 9)], 1)  # the cup's inside
-    inits = {}
-    for on in (False, True):
-        cfg = TrainConfig(photo_hull=on, photo_hull_res=RES, hull_res=RES, fit_frame=False, progress=False)
-        trainer = Trainer(cfg, data, tmp_path / str(on))
+    grey = dataclasses.replace(data, images=torch.full_like(data.images, 0.5))
+    inits, logits = {}, {}
+    for name, on, scene in (("visual", False, data), ("photo", True, data), ("grey", True, grey)):
+        cfg = TrainConfig(photo_hull=on, photo_hull_res=2 * RES, hull_res=RES, fit_frame=False, progress=False)
+        trainer = Trainer(cfg, scene, tmp_path / name)
+        logits[name] = trainer._initial_logits()
         with torch.no_grad():
-            inits[on] = trainer.model.occupancy(axis).reshape(-1)
-    counts = json.loads((tmp_path / "True" / "photo_hull.json").read_text())
+            inits[name] = trainer.model.occupancy(axis).reshape(-1)
+    counts = json.loads((tmp_path / "photo" / "photo_hull.json").read_text())
     assert counts["carved"] > 0 and counts["sweeps"] > 1
-    assert not (tmp_path / "False" / "photo_hull.json").exists()
-    assert (inits[False] > 0).all() and (inits[True] < 0).any()
+    assert not (tmp_path / "visual" / "photo_hull.json").exists()
+    assert (inits["visual"] > 0).all() and (inits["photo"] < 0).any()
+    assert json.loads((tmp_path / "grey" / "photo_hull.json").read_text())["carved"] == 0
+    assert logits["grey"].shape == logits["visual"].shape == (RES + 1,) * 3
+    assert torch.equal(logits["grey"], logits["visual"])
 
 
 def test_shallow_carves_are_put_back_and_deep_ones_kept():
@@ -167,3 +195,27 @@ def test_a_textured_surface_keeps_its_nibbles_out(tmp_path):
     assert kept.shallow > 0 and kept.carved + kept.shallow == every.carved
     assert kept.carved <= 0.25 * every.carved
     assert (deep & ~kept.inside).sum() <= 0.1 * (deep & ~every.inside).sum()
+
+
+def test_view_gains_recover_exposure_across_rings_despite_a_lid():
+    """Two rings of four views that share a fifth of their points, each view at its own exposure and white
+    balance, and a lid whose points every view sees in another colour: the fitted gains are the true ones (up to
+    their common scale) within 0.5 %."""
+    from dvr.photohull import _view_gains
+
+    gen = torch.Generator().manual_seed(0)
+    V, M, lid = 8, 500, 60
+    albedo = 0.1 + 0.8 * torch.rand(M, 3, generator=gen)
+    exposure = 1 + 0.25 * (2 * torch.rand(V, 1, generator=gen) - 1)
+    gains = exposure * (1 + 0.08 * (2 * torch.rand(V, 3, generator=gen) - 1))
+    colours = gains[:, None] * albedo[None]
+    colours[:, :lid] = 0.1 + 0.8 * torch.rand(V, lid, 3, generator=gen)  # the lid: each view sees another place
+    seen = torch.zeros(V, M, dtype=torch.bool)
+    seen[:4, :300] = True
+    seen[4:, 200:] = True
+    seen[:, :lid] = True
+    fitted = _view_gains(colours, seen)
+    truth = gains / gains.log().mean(0).exp()
+    assert fitted.shape == (V, 3) and torch.isfinite(fitted).all()
+    assert ((fitted / truth - 1).abs() < 0.005).all()
+    assert torch.allclose(_view_gains(colours, torch.zeros_like(seen)), torch.ones(V, 3))  # nothing seen: 1
