@@ -1,8 +1,11 @@
 """What the photo hull carves on the bench's captures (GT cameras and masks; DTU with its automatic masks), and how
-long it takes: the counts of :func:`dvr.photohull.photo_carve` with the trainer's settings, one line per capture.
+long it takes: the counts of :func:`dvr.photohull.photo_carve` as the train stage carves (its frame, its
+lattices, the default preset's settings), one line per capture.
 
     python bench/carves.py            # every capture (renders the scenes the bench has not cached yet)
     python bench/carves.py mug dtu    # only these
+    python bench/carves.py --photos   # the synthetic captures from photos: SfM cameras, automatic masks (the
+                                      # bench's training photos; stages run once, kept in bench/runs/photos/)
 
 A capture where nothing is carved trains exactly as without ``--train.photo-hull``.
 """
@@ -10,6 +13,7 @@ A capture where nothing is carved trains exactly as without ``--train.photo-hull
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -19,39 +23,62 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.evaluate import RUNS, scene  # noqa: E402
+from bench.evaluate import HELDOUT, RUNS, config, photos_folder, scene, stages  # noqa: E402
 from bench.run import ABLATIONS, KNOBS  # noqa: E402
 
+FROM_PHOTOS = ("cow", "jar", "book", "cow_float", "sphere_board", "jar_alike", "stool", "mug")
 CAPTURES = [("cow", {}), ("jar", {}), ("book", {}), ("cow_float", {}), ("stool", {}), ("mug", {}),
             ("cow", KNOBS["images 200x150"][1]), ("cow", ABLATIONS["exposure"][1]),
             ("cow", ABLATIONS["exposure+specular"][1]), ("mug", ABLATIONS["views to 80°"][1]), ("dtu", {})]
 
 
-def carve(name: str, over: dict) -> dict:
-    from dvr.data import load_scene
-    from dvr.hull import hull_inside
-    from dvr.photohull import photo_carve
-    from dvr.trainer import TrainConfig
+def workspace(name: str, over: dict, from_photos: bool) -> tuple[Path, list[int] | None]:
+    """The capture's workspace and its training views (None: all): the scene's own, DTU's as the bench ran its
+    stages, or (``from_photos``) its photos through the cameras, masks and depth stages, run once."""
+    if name == "dtu":
+        ws = RUNS / "dtu_all"
+        if not (ws / "cameras.npz").exists():
+            raise SystemExit(f"bench/carves.py: {ws} has no cameras.npz; run a DTU row of bench/run.py first")
+        return ws, None
+    syn = scene(name, over)
+    if not from_photos:
+        return syn, None
+    from dvr.data import list_images
 
-    cfg = TrainConfig()
-    ws = RUNS / "dtu_all" if name == "dtu" else scene(name, over)
-    if not (ws / "cameras.npz").exists():
-        raise SystemExit(f"bench/carves.py: {ws} has no cameras.npz; run a DTU row of bench/run.py first")
-    data = load_scene(ws, torch.device("cpu"), use_depth=False)
+    ws = RUNS / "photos" / name
+    if not (ws / ".stages" / "depth.json").exists():
+        shutil.rmtree(RUNS / "photos" / f"{name}-photos", ignore_errors=True)
+        stages(("cameras", "masks", "depth"), ws, config("default"),
+               images=photos_folder(syn, RUNS / "photos" / f"{name}-photos"))
+    return ws, [k for k, p in enumerate(list_images(ws / "images")) if not p.stem.startswith(HELDOUT)]
+
+
+def carve(name: str, over: dict, from_photos: bool = False) -> dict:
+    """The photo hull's counts on one capture as the train stage would carve it (its frame, its lattices), and
+    the seconds the initial occupancy took with the photo hull and without."""
+    from dvr.data import load_scene
+    from dvr.trainer import TrainConfig, initial_inside, training_frame
+
+    ws, views = workspace(name, over, from_photos)
+    cfg = TrainConfig(photo_hull=True)
+    data = training_frame(cfg, load_scene(ws, torch.device("cpu"), views=views))
     t0 = time.perf_counter()
-    inside = hull_inside(data.P, data.masks, cfg.photo_hull_res, cfg.carve_min_views, ground=data.cams.ground,
-                         sizes=data.sizes, contact_band=cfg.contact_band)
-    r = photo_carve(inside, data.P, data.images, data.masks, data.sizes, spread_floor=cfg.photo_spread,
-                    contrast_weight=cfg.photo_contrast, min_depth=cfg.photo_min_depth)
+    initial_inside(TrainConfig(), data)
+    t1 = time.perf_counter()
+    _, r = initial_inside(cfg, data)
     counts = {k: v for k, v in vars(r).items() if k != "inside"}
-    return {"capture": name, "overrides": over, "seconds": round(time.perf_counter() - t0, 1), **counts}
+    return {"capture": name, "overrides": over, "from_photos": from_photos, "seconds": round(t1 - t0, 1),
+            "seconds_photo_hull": round(time.perf_counter() - t1, 1), **counts}
 
 
 def main() -> None:
-    only = sys.argv[1:]
-    for name, over in CAPTURES:
+    args = sys.argv[1:]
+    from_photos = "--photos" in args
+    only = [a for a in args if a != "--photos"]
+    captures = [(n, {}) for n in FROM_PHOTOS] if from_photos else CAPTURES
+    for name, over in captures:
         if not only or name in only:
-            print(json.dumps(carve(name, over)), flush=True)
+            print(json.dumps(carve(name, over, from_photos)), flush=True)
 
 
 if __name__ == "__main__":

@@ -146,6 +146,9 @@ def plan(quick: bool) -> list[dict]:
     out += [{"scene": "cow", "cameras": "sfm", "preset": "balanced", "knob": "final adjustment", "ablation": True}]
     out += [{"scene": "mug", "cameras": c, "preset": "default", "knob": "photo hull", "ablation": True}
             for c in ("gt", "sfm")]
+    # the captures from photos where the photo hull carves something besides the mug (bench/carves.py --photos)
+    out += [{"scene": s, "cameras": "sfm", "preset": "default", "knob": "photo hull", "ablation": True}
+            for s in ("cow_float", "jar_alike")]
     out += [{"kind": "cameras", "condition": c, "scene": CONDITIONS[c][0]} for c in CONDITIONS]
     return out
 

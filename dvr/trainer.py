@@ -26,7 +26,7 @@ from .fields import Field, FieldConfig, finite_difference_normals, make_field
 from .hull import carve_along_rays, coarse_points, hull_bounding_sphere, hull_inside, inside_logits, outside_hull
 from .implicit import implicit_depth
 from .march import INSIDE, MISS, SurfaceResult, find_surface
-from .photohull import photo_carve
+from .photohull import PhotoCarveResult, photo_carve
 from .render import render_view
 from .shading import ViewShading
 
@@ -297,17 +297,40 @@ _CHECKPOINT_KEYS = ("step", "elapsed", "skipped", "field", "opt", "sched", "rng_
                     "rng_py")
 
 
+def training_frame(cfg: TrainConfig, data: SceneData) -> SceneData:
+    """The scene as training sees it: with ``fit_frame``, reframed so that the working sphere is the visual hull's
+    bounding sphere (as it is when the hull is empty or fills the sphere, or without ``fit_frame``)."""
+    if not cfg.fit_frame:
+        return data
+    sphere = hull_bounding_sphere(data.P, data.masks, cfg.hull_res, cfg.carve_min_views, cfg.frame_margin,
+                                  ground=data.cams.ground, sizes=data.sizes, contact_band=cfg.contact_band)
+    return data if sphere is None else data.reframe(*sphere)
+
+
+def initial_inside(cfg: TrainConfig, data: SceneData) -> tuple[np.ndarray, PhotoCarveResult | None]:
+    """The initial occupancy, a (hull_res+1)³ bool lattice: the visual hull; with ``photo_hull``, less what the
+    photo hull carves at its own, finer lattice (where it carves nothing, the visual hull exactly), and what it
+    did."""
+
+    def visual_hull(res: int) -> np.ndarray:
+        return hull_inside(data.P, data.masks, res, cfg.carve_min_views, ground=data.cams.ground, sizes=data.sizes,
+                           contact_band=cfg.contact_band)
+
+    inside = visual_hull(cfg.hull_res)
+    if not cfg.photo_hull:
+        return inside, None
+    fine = visual_hull(cfg.photo_hull_res)
+    carving = photo_carve(fine, data.P, data.images, data.masks, data.sizes, spread_floor=cfg.photo_spread,
+                          contrast_weight=cfg.photo_contrast, min_depth=cfg.photo_min_depth)
+    return inside & ~coarse_points(fine & ~carving.inside, cfg.hull_res), carving
+
+
 class Trainer:
     """Trains a field on a SceneData, writing into ``out_dir`` (the workspace's ``model/``)."""
 
     def __init__(self, cfg: TrainConfig, data: SceneData, out_dir: Path):
         self.cfg = cfg
-        if cfg.fit_frame:
-            sphere = hull_bounding_sphere(data.P, data.masks, cfg.hull_res, cfg.carve_min_views, cfg.frame_margin,
-                                          ground=data.cams.ground, sizes=data.sizes, contact_band=cfg.contact_band)
-            if sphere is not None:
-                data = data.reframe(*sphere)
-        self.data = data
+        self.data = data = training_frame(cfg, data)
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.device = data.masks.device
@@ -349,23 +372,13 @@ class Trainer:
         self.skipped = 0
 
     def _initial_logits(self) -> torch.Tensor:
-        """The visual hull's logit volume at ``hull_res``; with ``photo_hull``, less what the photo hull carves at
-        its own, finer lattice (where it carves nothing, the visual hull's volume exactly)."""
-        cfg, data = self.cfg, self.data
-
-        def visual_hull(res: int) -> np.ndarray:
-            return hull_inside(data.P, data.masks, res, cfg.carve_min_views, ground=data.cams.ground,
-                               sizes=data.sizes, contact_band=cfg.contact_band)
-
-        inside = visual_hull(cfg.hull_res)
-        if cfg.photo_hull:
-            fine = visual_hull(cfg.photo_hull_res)
-            result = photo_carve(fine, data.P, data.images, data.masks, data.sizes, spread_floor=cfg.photo_spread,
-                                 contrast_weight=cfg.photo_contrast, min_depth=cfg.photo_min_depth)
-            inside &= ~coarse_points(fine & ~result.inside, cfg.hull_res)
-            summary = {k: (v if math.isfinite(v) else None) for k, v in vars(result).items() if k != "inside"}
+        """The initial occupancy's logit volume (:func:`initial_inside`); the photo hull's counts, with
+        ``photo_hull``, to ``photo_hull.json``."""
+        inside, carving = initial_inside(self.cfg, self.data)
+        if carving is not None:
+            summary = {k: (v if math.isfinite(v) else None) for k, v in vars(carving).items() if k != "inside"}
             (self.out / "photo_hull.json").write_text(json.dumps(summary, indent=1))
-        return inside_logits(inside, device=data.masks.device)
+        return inside_logits(inside, device=self.data.masks.device)
 
     # ----------------------------------------------------------------- checkpoints
     @property

@@ -20,19 +20,28 @@ CUP = {"kind": "difference", "parts": [
     {"kind": "cylinder", "radius": 0.36, "minor": 0.03, "size": [0.0, 0.0, 0.45], "center": [0.0, 0.0, 0.2]}]}
 
 
+CUP_PHOTOS = {"shape": CUP, "albedo": {"kind": "noise", "scale": 1.5, "contrast": 0.15}, "lighting": LIGHT,
+              "cameras": {"n_views": 24, "width": 96, "height": 72, "elevation": [30, 70], "rings": 2}}
+BALL_PHOTOS = {"shape": {"kind": "sphere", "radius": 0.6}, "albedo": {"kind": "noise", "scale": 6.0, "contrast": 0.6},
+               "lighting": LIGHT,
+               "cameras": {"n_views": 16, "width": 96, "height": 72, "elevation": [-20, 50], "rings": 2}}
+
+
+def _photographed(ws, **scene_over):
+    """The scene rendered into ``ws``: the scene, its data and its visual hull."""
+    from pipeline.synth import write_scene
+
+    scene = small_scene(**scene_over)
+    write_scene(scene, ws)
+    data = load_scene(ws, torch.device("cpu"), use_depth=False)
+    return scene, data, hull_inside(data.P, data.masks, RES)
+
+
 @pytest.fixture(scope="module")
 def cup(tmp_path_factory):
     """An open cup glazed like the bench's mug (weak texture, one light), 24 views of 96×72 looking down 30-70°:
     its scene data and visual hull."""
-    from pipeline.synth import write_scene
-
-    ws = tmp_path_factory.mktemp("cup")
-    scene = small_scene(shape=CUP, albedo={"kind": "noise", "scale": 1.5, "contrast": 0.15}, lighting=LIGHT,
-                        cameras={"n_views": 24, "width": 96, "height": 72, "elevation": [30, 70], "rings": 2})
-    write_scene(scene, ws)
-    data = load_scene(ws, torch.device("cpu"), use_depth=False)
-    inside = hull_inside(data.P, data.masks, RES)
-    return scene, data, inside
+    return _photographed(tmp_path_factory.mktemp("cup"), **CUP_PHOTOS)
 
 
 def _true_sdf(scene, data):
@@ -44,51 +53,40 @@ def _true_sdf(scene, data):
     return d.reshape((RES + 1,) * 3), world.reshape((RES + 1,) * 3 + (3,))
 
 
+def _judged(scene, data, inside, carved):
+    """What a carving did: the share of the cup's hollow (inside the visual hull) it opened, and how many of the
+    solid's points more than a cell and a half from its surface it carved."""
+    d, world = _true_sdf(scene, data)
+    cell = 2.0 / RES * np.linalg.norm(data.cams.scale_mat[:3, 0])
+    hollow = (np.hypot(world[..., 0], world[..., 1]) < 0.3) & (world[..., 2] > -0.1) & (world[..., 2] < 0.35)
+    return (~carved[hollow & inside]).mean(), int((inside & (d < -1.5 * cell) & ~carved).sum())
+
+
 def test_opens_the_cups_inside_and_keeps_its_wall(cup):
     scene, data, inside = cup
     result = photo_carve(inside, data.P, data.images, data.masks, data.sizes)
     d, world = _true_sdf(scene, data)
-    cell = 2.0 / RES * np.linalg.norm(data.cams.scale_mat[:3, 0])
     hollow = (np.hypot(world[..., 0], world[..., 1]) < 0.3) & (world[..., 2] > -0.1) & (world[..., 2] < 0.35)
     assert inside[hollow].mean() > 0.99  # the visual hull fills the cup: nothing but colour can open it
-    assert (~result.inside[hollow & inside]).mean() > 0.5
-    deep = d < -1.5 * cell  # the solid's points more than a cell and a half from its surface
-    assert (inside & deep & ~result.inside).sum() == 0
+    opened, deep_carved = _judged(scene, data, inside, result.inside)
+    assert opened > 0.5 and deep_carved == 0
     assert result.carved > 0 and result.sweeps > 1 and np.isfinite(result.threshold)
 
 
 def test_opens_the_cup_under_changing_exposure(tmp_path):
     """The cup photographed with exposure ±25 % and white balance ±8 % per view (a phone's auto exposure): the
     photo hull compares colours after each view's gains, so it opens the cup as it does with steady exposure."""
-    from pipeline.synth import write_scene
-
-    scene = small_scene(shape=CUP, albedo={"kind": "noise", "scale": 1.5, "contrast": 0.15}, lighting=LIGHT,
-                        cameras={"n_views": 24, "width": 96, "height": 72, "elevation": [30, 70], "rings": 2},
-                        effects=[{"kind": "exposure", "amount": 0.25, "white_balance": 0.08}])
-    write_scene(scene, tmp_path)
-    data = load_scene(tmp_path, torch.device("cpu"), use_depth=False)
-    inside = hull_inside(data.P, data.masks, RES)
+    scene, data, inside = _photographed(tmp_path, **CUP_PHOTOS,
+                                        effects=[{"kind": "exposure", "amount": 0.25, "white_balance": 0.08}])
     result = photo_carve(inside, data.P, data.images, data.masks, data.sizes)
-    d, world = _true_sdf(scene, data)
-    cell = 2.0 / RES * np.linalg.norm(data.cams.scale_mat[:3, 0])
-    hollow = (np.hypot(world[..., 0], world[..., 1]) < 0.3) & (world[..., 2] > -0.1) & (world[..., 2] < 0.35)
-    assert (~result.inside[hollow & inside]).mean() > 0.5
-    assert (inside & (d < -1.5 * cell) & ~result.inside).sum() == 0
+    opened, deep_carved = _judged(scene, data, inside, result.inside)
+    assert opened > 0.5 and deep_carved == 0
 
 
 def test_a_convex_object_loses_no_solid(tmp_path):
-    from pipeline.synth import write_scene
-
-    scene = small_scene(shape={"kind": "sphere", "radius": 0.6}, albedo={"kind": "noise", "scale": 6.0,
-                                                                        "contrast": 0.6}, lighting=LIGHT,
-                        cameras={"n_views": 16, "width": 96, "height": 72, "elevation": [-20, 50], "rings": 2})
-    write_scene(scene, tmp_path)
-    data = load_scene(tmp_path, torch.device("cpu"), use_depth=False)
-    inside = hull_inside(data.P, data.masks, RES)
+    scene, data, inside = _photographed(tmp_path, **BALL_PHOTOS)
     result = photo_carve(inside, data.P, data.images, data.masks, data.sizes)
-    d, _ = _true_sdf(scene, data)
-    cell = 2.0 / RES * np.linalg.norm(data.cams.scale_mat[:3, 0])
-    assert (inside & (d < -1.5 * cell) & ~result.inside).sum() == 0
+    assert _judged(scene, data, inside, result.inside)[1] == 0
 
 
 def test_carving_never_opens_a_silhouette(cup):
@@ -178,23 +176,14 @@ def test_shallow_carves_are_put_back_and_deep_ones_kept():
 def test_a_textured_surface_keeps_its_nibbles_out(tmp_path):
     """At a threshold low enough to nibble a textured ball (no contrast term), the carved regions that reach less
     than ``min_depth`` into the hull are put back: most of the carving, and nearly all of it below the surface."""
-    from pipeline.synth import write_scene
-
-    scene = small_scene(shape={"kind": "sphere", "radius": 0.6}, albedo={"kind": "noise", "scale": 6.0,
-                                                                        "contrast": 0.6}, lighting=LIGHT,
-                        cameras={"n_views": 16, "width": 96, "height": 72, "elevation": [-20, 50], "rings": 2})
-    write_scene(scene, tmp_path)
-    data = load_scene(tmp_path, torch.device("cpu"), use_depth=False)
-    inside = hull_inside(data.P, data.masks, RES)
-    d, _ = _true_sdf(scene, data)
-    deep = inside & (d < -1.5 * 2.0 / RES * np.linalg.norm(data.cams.scale_mat[:3, 0]))
+    scene, data, inside = _photographed(tmp_path, **BALL_PHOTOS)
     kw = {"spread_ratio": 2.0, "contrast_weight": 0.0}
     every = photo_carve(inside, data.P, data.images, data.masks, data.sizes, min_depth=0.0, **kw)
     kept = photo_carve(inside, data.P, data.images, data.masks, data.sizes, **kw)
     assert every.carved > 0 and every.shallow == 0
     assert kept.shallow > 0 and kept.carved + kept.shallow == every.carved
     assert kept.carved <= 0.25 * every.carved
-    assert (deep & ~kept.inside).sum() <= 0.1 * (deep & ~every.inside).sum()
+    assert _judged(scene, data, inside, kept.inside)[1] <= 0.1 * _judged(scene, data, inside, every.inside)[1]
 
 
 def test_view_gains_recover_exposure_across_rings_despite_a_lid():
