@@ -97,11 +97,11 @@ def inside_logits(inside: np.ndarray, slope_cells: float = 1.0, clamp: float = 1
 
 
 def coarse_points(lattice: np.ndarray, res: int) -> np.ndarray:
-    """The (res+1)³ lattice's values read from ``lattice``, a finer (R+1)³ one over the same cube, at its nearest
-    points (exact when R is a multiple of ``res``: the coarse points are fine points)."""
+    """The (res+1)³ lattice's values read from ``lattice``, an (R+1)³ one over the same cube (finer, as a rule), at
+    its nearest points (exact when R is a multiple of ``res``: the coarse points are fine points)."""
     R = lattice.shape[0] - 1
-    if lattice.ndim != 3 or len(set(lattice.shape)) != 1 or R < res or res < 1:
-        raise ValueError(f"coarse_points: need a cubic lattice of at least {res + 1}³ points, got {lattice.shape}")
+    if lattice.ndim != 3 or len(set(lattice.shape)) != 1 or R < 1 or res < 1:
+        raise ValueError(f"coarse_points: need a cubic lattice and res ≥ 1, got {lattice.shape} and {res}")
     sel = np.rint(np.arange(res + 1) * (R / res)).astype(int)
     return lattice[np.ix_(sel, sel, sel)]
 

@@ -91,7 +91,8 @@ POSITIVE = frozenset({
     "cameras.radius_margin", "cameras.board_square_mm", "cameras.board_marker_mm", "cameras.final_error_ratio",
     "masks.hull_res", "masks.stereo_scale", "masks.stereo_depths", "depth.min_track_length",
     "train.iterations", "train.batch_rays", "train.n_steps", "train.n_steps_final",
-    "train.hull_res", "train.frame_margin", "train.checkpoint_every", "train.log_every", "train.field.base_res",
+    "train.hull_res", "train.photo_hull_res", "train.frame_margin", "train.checkpoint_every", "train.log_every",
+    "train.field.base_res",
     "train.field.plane_features", "train.field.hidden", "train.field.mlp_layers",
     "mesh.resolution", "mesh.coarse_factor", "mesh.max_faces", "texture.size"})
 """Options that must be above 0 (sizes, counts, resolutions, scales); every other number must be finite and ≥ 0

@@ -58,7 +58,8 @@ def test_carve_along_rays_frees_only_the_segment_in_front():
 
 def test_coarse_points_are_the_fine_lattices_points(small_ws):
     """A coarse lattice read from a finer one is the coarse lattice itself where the resolutions divide (the
-    visual hull at 32 from the one at 64), the nearest points where they do not; bad input is refused."""
+    visual hull at 32 from the one at 64), the nearest points where they do not or where it is finer (a photo
+    hull's lattice set coarser than the training's); bad input is refused."""
     from dvr.hull import coarse_points, hull_inside
 
     data = load_scene(small_ws, torch.device("cpu"))
@@ -67,7 +68,9 @@ def test_coarse_points_are_the_fine_lattices_points(small_ws):
     assert np.array_equal(coarse_points(fine, 64), fine)
     ramp = np.broadcast_to(np.arange(11)[:, None, None], (11, 11, 11))
     assert coarse_points(ramp, 4)[:, 0, 0].tolist() == [0, 2, 5, 8, 10]  # 2.5 → 2, 7.5 → 8 (round half to even)
+    finer = [0, 0, 1, 2, 2, 2, 3, 4, 4, 4, 5, 6, 6, 6, 7, 8, 8, 8, 9, 10, 10]  # k / 2, half to even
+    assert coarse_points(ramp, 20)[:, 0, 0].tolist() == finer
     with pytest.raises(ValueError, match="cubic lattice"):
-        coarse_points(fine, 65)
+        coarse_points(fine, 0)
     with pytest.raises(ValueError, match="cubic lattice"):
         coarse_points(fine[:, :, :-1], 32)
