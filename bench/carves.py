@@ -6,6 +6,7 @@ lattices, the default preset's settings), one line per capture.
     python bench/carves.py mug dtu    # only these
     python bench/carves.py --photos   # the synthetic captures from photos: SfM cameras, automatic masks (the
                                       # bench's training photos; stages run once, kept in bench/runs/photos/)
+    python bench/carves.py --photos --gt-masks   # the same with the GT masks in place of the automatic ones
 
 A capture where nothing is carved trains exactly as without ``--train.photo-hull``.
 """
@@ -53,13 +54,32 @@ def workspace(name: str, over: dict, from_photos: bool) -> tuple[Path, list[int]
     return ws, [k for k, p in enumerate(list_images(ws / "images")) if not p.stem.startswith(HELDOUT)]
 
 
-def carve(name: str, over: dict, from_photos: bool = False) -> dict:
+def with_gt_masks(ws: Path, name: str) -> Path:
+    """A copy of the photos workspace ``ws`` (its images and SfM's cameras) with the scene's GT masks in place of
+    the automatic ones (bench/runs/photos/<name>-gt-masks)."""
+    out = RUNS / "photos" / f"{name}-gt-masks"
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.copytree(ws / "images", out / "images")
+    shutil.copy2(ws / "cameras.npz", out / "cameras.npz")
+    syn = scene(name, {})
+    heldout = {p.name: p for p in (syn / "gt" / "heldout" / "masks").glob("*.png")}
+    (out / "masks").mkdir()
+    for p in sorted((ws / "masks").glob("*.png")):
+        src = syn / "masks" / p.name if not p.stem.startswith(HELDOUT) else heldout[p.name[len(HELDOUT):]]
+        shutil.copy2(src, out / "masks" / p.name)
+    return out
+
+
+def carve(name: str, over: dict, from_photos: bool = False, gt_masks: bool = False) -> dict:
     """The photo hull's counts on one capture as the train stage would carve it (its frame, its lattices), and
-    the seconds the initial occupancy took with the photo hull and without."""
+    the seconds the initial occupancy took with the photo hull and without; ``gt_masks`` (from photos): with the
+    GT masks in place of the automatic ones."""
     from dvr.data import load_scene
     from dvr.trainer import TrainConfig, initial_inside, training_frame
 
     ws, views = workspace(name, over, from_photos)
+    if gt_masks:
+        ws = with_gt_masks(ws, name)
     cfg = TrainConfig(photo_hull=True)
     data = training_frame(cfg, load_scene(ws, torch.device("cpu"), views=views))
     t0 = time.perf_counter()
@@ -67,18 +87,21 @@ def carve(name: str, over: dict, from_photos: bool = False) -> dict:
     t1 = time.perf_counter()
     _, r = initial_inside(cfg, data)
     counts = {k: v for k, v in vars(r).items() if k != "inside"}
-    return {"capture": name, "overrides": over, "from_photos": from_photos, "seconds": round(t1 - t0, 1),
+    return {"capture": name, "overrides": over, "from_photos": from_photos, "gt_masks": gt_masks,
+            "seconds": round(t1 - t0, 1),
             "seconds_photo_hull": round(time.perf_counter() - t1, 1), **counts}
 
 
 def main() -> None:
     args = sys.argv[1:]
-    from_photos = "--photos" in args
-    only = [a for a in args if a != "--photos"]
+    from_photos, gt_masks = "--photos" in args, "--gt-masks" in args
+    if gt_masks and not from_photos:
+        raise SystemExit("bench/carves.py: --gt-masks goes with --photos (the GT-camera captures have GT masks)")
+    only = [a for a in args if not a.startswith("--")]
     captures = [(n, {}) for n in FROM_PHOTOS] if from_photos else CAPTURES
     for name, over in captures:
         if not only or name in only:
-            print(json.dumps(carve(name, over, from_photos)), flush=True)
+            print(json.dumps(carve(name, over, from_photos, gt_masks)), flush=True)
 
 
 if __name__ == "__main__":
