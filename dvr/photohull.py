@@ -28,8 +28,12 @@ from scipy import ndimage
 from .cameras import project
 from .hull import grid_points
 
-NORMAL_SHIFTS = (-0.5, 0.5)
-"""Where else along the normal (in cells) a surface point's colours are read; its spread is the least."""
+NORMAL_SHIFTS = (-0.5, 0.5, 1.5, 2.5, 3.5)
+"""Where else along the outward normal (in cells) a surface point's colours are read; its spread is the least.
+Half a cell either way: the lattice point stands for a surface up to half a cell off. Up to 3.5 cells outward:
+where a mask misses a bit of the object, the hull's surface lies inside the solid, its views read different
+places of the true surface in front of it and disagree as over a cup's inside; read a few cells out they meet
+that surface and agree, so the carving does not dig in."""
 
 
 @dataclass
@@ -294,7 +298,7 @@ def _surface_spread(inside: np.ndarray, surf_idx: np.ndarray, pts_all: torch.Ten
     views)."""
     pts, uv, seen, normals = _surface_views(inside, surf_idx, pts_all, P, masks, cell, min_cos)
     spread = _spread(_bilinear(images, uv), seen)
-    for shift in NORMAL_SHIFTS:  # the lattice point is up to half a cell off the surface it stands for
+    for shift in NORMAL_SHIFTS:  # the surface it stands for may lie off the lattice point (NORMAL_SHIFTS)
         uv_s, _ = project(pts + shift * cell * normals, P)
         spread = torch.fmin(spread, _spread(_bilinear(images, uv_s), seen))
     local = torch.where(seen, _bilinear(contrast, uv)[..., 0], torch.full_like(seen, float("nan"), dtype=uv.dtype))
