@@ -146,9 +146,10 @@ def plan(quick: bool) -> list[dict]:
     out += [{"scene": "cow", "cameras": "sfm", "preset": "balanced", "knob": "final adjustment", "ablation": True}]
     out += [{"scene": "mug", "cameras": c, "preset": "default", "knob": "photo hull", "ablation": True}
             for c in ("gt", "sfm")]
-    # the captures from photos where the photo hull carves something besides the mug (bench/carves.py --photos)
+    # the captures from photos where the photo hull carved (stop 40, before it read colours outward) or carves
+    # something besides the mug (bench/carves.py --photos, and DTU)
     out += [{"scene": s, "cameras": "sfm", "preset": "default", "knob": "photo hull", "ablation": True}
-            for s in ("cow_float", "jar_alike")]
+            for s in ("cow_float", "jar_alike", "dtu")]
     out += [{"kind": "cameras", "condition": c, "scene": CONDITIONS[c][0]} for c in CONDITIONS]
     return out
 
