@@ -129,7 +129,9 @@ def photo_carve(inside: np.ndarray, P: torch.Tensor, images: torch.Tensor, masks
     with projections ``P`` (V, 3, 4), ``images`` (V, H, W, 3) in [0, 1] and ``masks`` (V, H, W).
 
     A surface point is carved when ≥ ``min_views`` views see it, unoccluded and at least ``min_cos`` head-on,
-    inside their masks and photos, and their colours spread (:func:`_spread`) more than max(``spread_floor``,
+    inside their masks and photos, and their colours (each view's exposure and white balance divided out:
+    :func:`_one_exposure`; read along the normal at :data:`NORMAL_SHIFTS` too, the least spread counting)
+    spread (:func:`_spread`) more than max(``spread_floor``,
     ``spread_ratio`` × the first sweep's median spread) + ``contrast_weight`` × the photos' local contrast there
     (:func:`_local_contrast`). A carved region that reaches less than ``min_depth`` (lattice units: the working
     sphere's radius is 1) into the hull is put back: nibbles of a textured surface, not a concavity.
