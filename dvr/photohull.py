@@ -202,8 +202,8 @@ def photo_carve(inside: np.ndarray, P: torch.Tensor, images: torch.Tensor, masks
             break
     shallow = _shallow_carves(start, inside, min_depth / cell)
     inside |= shallow
-    return PhotoCarveResult(inside, carved_total - int(shallow.sum()), restored_total, int(shallow.sum()), sweeps,
-                            threshold, pool)
+    n_shallow = int(shallow.sum())
+    return PhotoCarveResult(inside, carved_total - n_shallow, restored_total, n_shallow, sweeps, threshold, pool)
 
 
 def _shallow_carves(hull: np.ndarray, carved_hull: np.ndarray, min_cells: float) -> np.ndarray:
@@ -279,6 +279,8 @@ def _view_gains(colours: torch.Tensor, seen: torch.Tensor, rounds: int = 30, dar
     ok = seen[..., None] & (colours > dark) & (seen.sum(0) >= 2)[None, :, None]
     logc = torch.where(ok, colours.clamp(min=dark).log(), torch.zeros_like(colours))
     w = ok.to(colours.dtype)
+    readings = w.sum((0, 2))  # (M,) how many colour values each point has
+    fitted = readings > 0
     use = torch.ones(colours.shape[1], dtype=torch.bool, device=colours.device)
     log_g = torch.zeros(colours.shape[0], colours.shape[-1], dtype=colours.dtype, device=colours.device)
     for _ in range(rounds):
@@ -286,9 +288,8 @@ def _view_gains(colours: torch.Tensor, seen: torch.Tensor, rounds: int = 30, dar
         log_a = ((logc - log_g[:, None]) * wu).sum(0) / wu.sum(0).clamp(min=1)  # (M, 3) the points' colours
         log_g = ((logc - log_a[None]) * wu).sum(1) / wu.sum(1).clamp(min=1)  # (V, 3)
         log_g = log_g - log_g.mean(0)
-        resid = ((logc - log_g[:, None] - log_a[None]).abs() * w).sum((0, 2)) / w.sum((0, 2)).clamp(min=1)  # (M,)
-        seen2 = w.sum((0, 2)) > 0
-        use = seen2 & (resid <= resid[seen2].median()) if seen2.any() else seen2
+        resid = ((logc - log_g[:, None] - log_a[None]).abs() * w).sum((0, 2)) / readings.clamp(min=1)  # (M,)
+        use = fitted & (resid <= resid[fitted].median()) if fitted.any() else fitted
     return log_g.exp()
 
 

@@ -53,21 +53,25 @@ def _true_sdf(scene, data):
     return d.reshape((RES + 1,) * 3), world.reshape((RES + 1,) * 3 + (3,))
 
 
+def _cup_hollow(world):
+    """The lattice points in the cup's hollow (``world``: the lattice points in the scene's frame)."""
+    return (np.hypot(world[..., 0], world[..., 1]) < 0.3) & (world[..., 2] > -0.1) & (world[..., 2] < 0.35)
+
+
 def _judged(scene, data, inside, carved):
     """What a carving did: the share of the cup's hollow (inside the visual hull) it opened, and how many of the
     solid's points more than a cell and a half from its surface it carved."""
     d, world = _true_sdf(scene, data)
     cell = 2.0 / RES * np.linalg.norm(data.cams.scale_mat[:3, 0])
-    hollow = (np.hypot(world[..., 0], world[..., 1]) < 0.3) & (world[..., 2] > -0.1) & (world[..., 2] < 0.35)
+    hollow = _cup_hollow(world)
     return (~carved[hollow & inside]).mean(), int((inside & (d < -1.5 * cell) & ~carved).sum())
 
 
 def test_opens_the_cups_inside_and_keeps_its_wall(cup):
     scene, data, inside = cup
     result = photo_carve(inside, data.P, data.images, data.masks, data.sizes)
-    d, world = _true_sdf(scene, data)
-    hollow = (np.hypot(world[..., 0], world[..., 1]) < 0.3) & (world[..., 2] > -0.1) & (world[..., 2] < 0.35)
-    assert inside[hollow].mean() > 0.99  # the visual hull fills the cup: nothing but colour can open it
+    _, world = _true_sdf(scene, data)
+    assert inside[_cup_hollow(world)].mean() > 0.99  # the visual hull fills the cup: nothing but colour can open it
     opened, deep_carved = _judged(scene, data, inside, result.inside)
     assert opened > 0.5 and deep_carved == 0
     assert result.carved > 0 and result.sweeps > 1 and np.isfinite(result.threshold)
