@@ -22,3 +22,18 @@ def dtu_reference(folder: Path):
         K[:2] *= 0.32
         Ks.append(K), Rs.append(R), Cs.append(-R.T @ t)
     return np.stack(Ks), np.stack(Rs), np.stack(Cs), z["scale_mat_0"]
+
+
+def write_reference_cameras(folder: Path, out: Path) -> Path:
+    """DTU's cameras for its 384×384 photos as an IDR/NeuS ``cameras.npz`` (``world_mat_i`` = K [R | t] of the crop,
+    ``scale_mat_i`` as given) at ``out``, for the cameras stage's ``--given-cameras``, whose resizing from the
+    originals' size would not undo the crop."""
+    Ks, Rs, Cs, scale = dtu_reference(folder)
+    mats = {}
+    for i, (K, R, C) in enumerate(zip(Ks, Rs, Cs)):
+        world = np.eye(4)
+        world[:3] = K @ np.hstack([R, (-R @ C)[:, None]])
+        mats[f"world_mat_{i}"], mats[f"scale_mat_{i}"] = world, scale
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(out, **mats)
+    return out

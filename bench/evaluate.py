@@ -119,16 +119,24 @@ def mask_iou(ws: Path, gt_masks: dict[str, Path]) -> float:
 
 
 def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray, gain_fit: bool = False) -> float:
-    """PSNR of the textured mesh at a camera against a photo, over ``mask`` ∪ the mesh's pixels. ``gain_fit``: after
-    scaling each colour channel of the render by the least-squares gain to the photo (a held-out photo's own
-    exposure and white balance cannot be predicted; what remains is the texture's error), fitted where the photo is
-    not over-exposed and clipped to [0, 1] as the camera clips (else a brighter held-out view's clipped pixels count
-    against the right texture)."""
-    from dvr.metrics import masked_psnr
-    from pipeline.texture import TextureConfig, render_textured
+    """PSNR of the textured mesh at a camera against a photo, over ``mask`` ∪ the mesh's pixels; ``gain_fit``: as
+    :func:`image_psnr` says."""
+    from pipeline.texture import render_textured
 
     h, w = photo.shape[:2]
     img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, R, centre, w, h)
+    return image_psnr(img, hit, photo, mask, gain_fit)
+
+
+def image_psnr(img: np.ndarray, hit: np.ndarray, photo: np.ndarray, mask: np.ndarray, gain_fit: bool = False) -> float:
+    """PSNR of a render ``img`` (H, W, 3) whose mesh covers ``hit`` against a photo, over ``mask`` ∪ ``hit``.
+    ``gain_fit``: after scaling each colour channel of the render by the least-squares gain to the photo (a photo's
+    own exposure and white balance cannot be predicted by one texture; what remains is the texture's error), fitted
+    where the photo is not over-exposed and clipped to [0, 1] as the camera clips (else a brighter view's clipped
+    pixels count against the right texture)."""
+    from dvr.metrics import masked_psnr
+    from pipeline.texture import TextureConfig
+
     m = mask | hit
     fit = m & (photo < TextureConfig.clipped_level).all(-1) if gain_fit else None
     if gain_fit and fit.any():
@@ -309,7 +317,8 @@ def metric_error(est, gtc, idx: list[int], gt_board: dict) -> dict:
 
 
 def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
-    """DTU scan24 through our SfM and automatic masks (all 49 photos), every 7th photo held out of training."""
+    """DTU scan24 through our SfM (``spec["reference_cameras"]``: DTU's own cameras) and automatic masks (all 49
+    photos), every 7th photo held out of training."""
     from bench.dtu_reference import dtu_reference
     from dvr.cameras import load_cameras
     from dvr.data import list_images
@@ -318,10 +327,16 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
 
     options = (knobs or {}).get(spec.get("knob"), ([], {}))[0]
     cams_opts = photo_stage_options(options)  # a knob of those stages gets its own SfM run, else the shared one
-    full = RUNS / ("dtu_all" + ("-" + "_".join(o.strip("-").replace(".", "_") for o in cams_opts) if cams_opts else ""))
+    full = RUNS / ("dtu_all" + ("-" + "_".join(o.strip("-").replace(".", "_") for o in cams_opts) if cams_opts else "")
+                   + ("-reference_cameras" if spec.get("reference_cameras") else ""))
     if not (full / ".stages" / "depth.json").exists():
         shutil.rmtree(full, ignore_errors=True)
-        stages(("cameras", "masks", "depth"), full, config(None, cams_opts), images=DTU / "images")
+        given = {}
+        if spec.get("reference_cameras"):  # DTU's own calibration instead of SfM (features triangulated at it)
+            from bench.dtu_reference import write_reference_cameras
+
+            given = {"given_cameras": write_reference_cameras(DTU, RUNS / "dtu_reference" / "cameras.npz")}
+        stages(("cameras", "masks", "depth"), full, config(None, cams_opts), images=DTU / "images", **given)
     cams = load_cameras(full / "cameras.npz")
     paths = list_images(full / "images")
     names = [p.stem for p in paths]
@@ -336,7 +351,7 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     from dvr.metrics import masked_psnr
     from pipeline.texture import render_textured
 
-    psnr, psnr_hit, cover, psnr_train = [], [], [], []
+    psnr, psnr_hit, cover, psnr_train, fitted, fitted_train = [], [], [], [], [], []
     for i in range(len(names)):
         photo = _read_rgb(paths[i])
         h, w = photo.shape[:2]
@@ -344,9 +359,11 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
                                    cams.sfm_centers[i], w, h)
         mask = _read_mask(full / "masks" / f"{names[i]}.png")
         if i not in held:  # the textured mesh at the photos it was made from
-            psnr_train.append(masked_psnr(img, photo, mask | hit))
+            psnr_train.append(image_psnr(img, hit, photo, mask))
+            fitted_train.append(image_psnr(img, hit, photo, mask, gain_fit=True))
             continue
-        psnr.append(masked_psnr(img, photo, mask | hit))
+        psnr.append(image_psnr(img, hit, photo, mask))
+        fitted.append(image_psnr(img, hit, photo, mask, gain_fit=True))
         psnr_hit.append(masked_psnr(img, photo, hit))
         cover.append(float((mask & hit).sum() / max(1, mask.sum())))
     shared = Workspace(full).seconds()
@@ -354,6 +371,7 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     stamp = Workspace(full).stamp("cameras") or {}
     return {"seconds": secs, "chamfer_rel": None, "fscore": None, "psnr": float(np.mean(psnr)), "pose": pose,
             "psnr_on_model": float(np.mean(psnr_hit)), "psnr_train": float(np.mean(psnr_train)),
+            "psnr_gain_fit": float(np.mean(fitted)), "psnr_train_gain_fit": float(np.mean(fitted_train)),
             "mask_covered": float(np.mean(cover)),
             "registered": f"{len(names)}/49", "support": stamp.get("support"), "rung": stamp.get("rung"),
             "views": {"train": len(names) - len(held), "heldout": len(held), "registered": len(names)}}

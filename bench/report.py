@@ -88,6 +88,8 @@ def _psnr(r: dict) -> str:
         txt += f" ({r['psnr_gt_pose']:.1f} at GT pose)"
     if r.get("psnr_train") is not None:
         txt += f" (training views {r['psnr_train']:.1f})"
+    if r.get("psnr_train_gain_fit") is not None:  # DTU: each photo's own exposure, fitted
+        txt += f"; each photo's gains fitted: {r['psnr_gain_fit']:.1f} (training views {r['psnr_train_gain_fit']:.1f})"
     return txt
 
 
