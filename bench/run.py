@@ -178,12 +178,23 @@ def run_child(spec: dict) -> None:
     print("RESULT " + json.dumps(res))
 
 
+def stale_dtu_stages(specs: list[dict]) -> list[Path]:
+    """DTU's cameras, masks and depth cached by earlier runs (``bench/runs/dtu_all*``, which
+    :func:`bench.evaluate.run_dtu` makes only when missing): a bench that runs DTU rows afresh makes them again with
+    today's code (stop 37's re-run kept masks from before a change to the masks stage)."""
+    if not any(s.get("scene") == "dtu" for s in specs):
+        return []
+    return sorted(p for p in RUNS.glob("dtu_all*") if p.is_dir())
+
+
 def run_all(specs: list[dict], resume: bool) -> list[dict]:
     results = []
     t0 = time.perf_counter()
     done = RUNS / "done"
     if not resume:
         shutil.rmtree(done, ignore_errors=True)
+        for stale in stale_dtu_stages(specs):
+            shutil.rmtree(stale)
     done.mkdir(parents=True, exist_ok=True)
     for k, spec in enumerate(specs):
         print(f"[{k + 1}/{len(specs)}, {time.perf_counter() - t0:.0f} s] {spec}", flush=True)

@@ -32,3 +32,15 @@ def test_merged_keeps_the_old_row_when_the_rerun_failed_and_appends_new_specs(tm
     rows = merged(path, [{**photos, "error": "boom"}, new])
     assert [r["psnr"] for r in rows] == [24.0, 32.0]
 
+
+
+def test_a_bench_with_dtu_rows_makes_dtu_stages_again(tmp_path, monkeypatch):
+    import bench.run as run
+
+    monkeypatch.setattr(run, "RUNS", tmp_path)
+    for name in ("dtu_all", "dtu_all-cameras_seed_1", "photos"):
+        (tmp_path / name).mkdir()
+    dtu = {"scene": "dtu", "cameras": "sfm", "preset": "default"}
+    cow = {"scene": "cow", "cameras": "gt", "preset": "default"}
+    assert run.stale_dtu_stages([cow]) == []
+    assert [p.name for p in run.stale_dtu_stages([cow, dtu])] == ["dtu_all", "dtu_all-cameras_seed_1"]
