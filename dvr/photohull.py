@@ -68,32 +68,40 @@ def _outward_normals(inside: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return -g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-8)
 
 
-def _splat_index(uv: torch.Tensor, H: int, W: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Flat pixel indices (V, M, 9) of the 3×3 pixels around each projection and whether each lies inside."""
-    offs = torch.tensor([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], device=uv.device)
-    pix = torch.floor(uv).long()[:, :, None, :] + offs
-    ok = (pix[..., 0] >= 0) & (pix[..., 0] < W) & (pix[..., 1] >= 0) & (pix[..., 1] < H)
-    return pix[..., 1].clamp(0, H - 1) * W + pix[..., 0].clamp(0, W - 1), ok
+def _splats(uv: torch.Tensor, H: int, W: int):
+    """For each of the 3×3 pixels around each projection uv (V, M, 2), centre fifth, row by row: its flat pixel
+    index (V, M) and whether it lies inside the image (V, M). One offset at a time: nine (V, M, 2) offsets at once
+    were most of the photo hull's time and memory."""
+    base = torch.floor(uv).long()
+    bx, by = base[..., 0], base[..., 1]
+    for dy in (-1, 0, 1):
+        y = by + dy
+        row, ok_y = y.clamp(0, H - 1) * W, (y >= 0) & (y < H)
+        for dx in (-1, 0, 1):
+            x = bx + dx
+            yield row + x.clamp(0, W - 1), ok_y & (x >= 0) & (x < W)
 
 
 def _coverage(uv: torch.Tensor, z: torch.Tensor, H: int, W: int) -> torch.Tensor:
     """(V, H·W) bool: the pixels the points' 3×3 splats cover (points in front of the camera)."""
-    idx, ok = _splat_index(uv, H, W)
-    ok &= (z > 0)[..., None]
+    front = z > 0
     cov = torch.zeros(uv.shape[0], H * W, dtype=torch.bool, device=uv.device)
-    cov.scatter_(1, torch.where(ok, idx, 0).flatten(1), ok.flatten(1))
+    for idx, ok in _splats(uv, H, W):
+        ok &= front
+        cov.scatter_reduce_(1, idx, ok, reduce="amax")
     return cov
 
 
 def _visible(uv: torch.Tensor, z: torch.Tensor, H: int, W: int, tol: torch.Tensor) -> torch.Tensor:
     """(V, M) bool: the point is within ``tol`` (V, 1) of the nearest of all the points' 3×3 splats at its
     pixel (a z-buffer of the surface points)."""
-    idx, ok = _splat_index(uv, H, W)
-    ok &= (z > 0)[..., None]
+    front, far = z > 0, torch.full_like(z, float("inf"))
     zbuf = torch.full((uv.shape[0], H * W), float("inf"), device=uv.device)
-    vals = torch.where(ok, z[..., None].expand_as(idx), torch.full_like(idx, float("inf"), dtype=z.dtype))
-    zbuf.scatter_reduce_(1, idx.flatten(1), vals.flatten(1), reduce="amin")
-    centre, inside = idx[..., 4], ok[..., 4]
+    for k, (idx, ok) in enumerate(_splats(uv, H, W)):
+        ok &= front
+        zbuf.scatter_reduce_(1, idx, torch.where(ok, z, far), reduce="amin")
+        if k == 4:
+            centre, inside = idx, ok
     return inside & (z <= zbuf.gather(1, centre) + tol)
 
 
@@ -333,11 +341,15 @@ def _reopened(inside: np.ndarray, cand: np.ndarray, cand_spread: torch.Tensor, p
     if not lost.any():
         return cand[:0]
     uv, z = project_idx(cand)
-    idx, ok = _splat_index(uv, h, w)
-    hit = ok & (z > 0)[..., None] & lost.gather(1, idx.flatten(1)).view(idx.shape)
-    key = idx + torch.arange(idx.shape[0], device=idx.device)[:, None, None] * (h * w)
-    spread = cand_spread.to(lost.device)[None, :, None].expand_as(idx)
+    front, offset = z > 0, torch.arange(uv.shape[0], device=uv.device)[:, None] * (h * w)
+    spread = cand_spread.to(lost.device)[None, :].expand(uv.shape[0], -1)
     best = torch.full((lost.numel(),), float("inf"), device=lost.device)
-    best.scatter_reduce_(0, key[hit], spread[hit], reduce="amin")
-    chosen = hit & (spread <= best[key])
-    return cand[chosen.any(-1).any(0).cpu().numpy()]
+    hits = []
+    for idx, ok in _splats(uv, h, w):
+        hit = ok & front & lost.gather(1, idx)
+        best.scatter_reduce_(0, (idx + offset)[hit], spread[hit], reduce="amin")
+        hits.append((idx + offset, hit))
+    chosen = torch.zeros(len(cand), dtype=torch.bool, device=lost.device)
+    for key, hit in hits:
+        chosen |= (hit & (spread <= best[key])).any(0)
+    return cand[chosen.cpu().numpy()]

@@ -10,7 +10,7 @@ import torch
 from dvr.cameras import to_sfm
 from dvr.data import load_scene
 from dvr.hull import grid_points, hull_inside
-from dvr.photohull import _coverage, _surface, photo_carve
+from dvr.photohull import _coverage, _surface, _visible, photo_carve
 from tests.conftest import small_scene
 
 RES = 64
@@ -234,3 +234,34 @@ def test_view_gains_recover_exposure_across_rings_despite_a_lid():
     assert fitted.shape == (V, 3) and torch.isfinite(fitted).all()
     assert ((fitted / truth - 1).abs() < 0.005).all()
     assert torch.allclose(_view_gains(colours, torch.zeros_like(seen)), torch.ones(V, 3))  # nothing seen: 1
+
+
+def _splat_reference(uv, z, H, W, tol):
+    """Plain loops: each point's 3×3 pixels, a z-buffer of them, coverage and visibility (the oracle)."""
+    V, M = z.shape
+    zbuf, cov = np.full((V, H, W), np.inf), np.zeros((V, H * W), bool)
+    for v in range(V):
+        for m in range(M):
+            x0, y0 = int(np.floor(uv[v, m, 0])), int(np.floor(uv[v, m, 1]))
+            for y in range(y0 - 1, y0 + 2):
+                for x in range(x0 - 1, x0 + 2):
+                    if z[v, m] > 0 and 0 <= x < W and 0 <= y < H:
+                        zbuf[v, y, x] = min(zbuf[v, y, x], z[v, m])
+                        cov[v, y * W + x] = True
+    seen = np.zeros((V, M), bool)
+    for v in range(V):
+        for m in range(M):
+            x, y = int(np.floor(uv[v, m, 0])), int(np.floor(uv[v, m, 1]))
+            seen[v, m] = z[v, m] > 0 and 0 <= x < W and 0 <= y < H and z[v, m] <= zbuf[v, y, x] + tol[v, 0]
+    return cov, seen
+
+
+def test_splat_coverage_and_visibility_match_plain_loops():
+    gen = torch.Generator().manual_seed(3)
+    uv = torch.rand(3, 60, 2, generator=gen) * torch.tensor([14.0, 10.0]) - 2.0  # some off the 12×8 image
+    z = torch.rand(3, 60, generator=gen) * 4.0 - 0.5  # some behind the camera
+    tol = torch.tensor([[0.05], [0.2], [0.0]])
+    cov, seen = _splat_reference(uv.numpy(), z.numpy(), 8, 12, tol.numpy())
+    assert torch.equal(_coverage(uv, z, 8, 12), torch.from_numpy(cov))
+    assert torch.equal(_visible(uv, z, 8, 12, tol), torch.from_numpy(seen))
+    assert 0 < seen.sum() < seen.size and 0 < cov.sum() < cov.size  # the case is not trivial
