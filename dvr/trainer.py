@@ -329,6 +329,7 @@ class Trainer:
     """Trains a field on a SceneData, writing into ``out_dir`` (the workspace's ``model/``)."""
 
     def __init__(self, cfg: TrainConfig, data: SceneData, out_dir: Path):
+        t_setup = time.perf_counter()
         self.cfg = cfg
         self.data = data = training_frame(cfg, data)
         self.out = Path(out_dir)
@@ -368,8 +369,9 @@ class Trainer:
         self.sched = torch.optim.lr_scheduler.ExponentialLR(self.opt, gamma)
         self.sampler = RaySampler(data, cfg.boundary_fraction, generator=self.gen)
         self.step = 0
-        self.elapsed = 0.0
         self.skipped = 0
+        self.setup_seconds = time.perf_counter() - t_setup
+        self.elapsed = self.setup_seconds  # what training took includes its setup (visual hull, photo hull)
 
     def _initial_logits(self) -> torch.Tensor:
         """The initial occupancy's logit volume (:func:`initial_inside`); the photo hull's counts, with
@@ -442,7 +444,8 @@ class Trainer:
         random.setstate(ck["rng_py"])
         if ck.get("rng_cuda") is not None and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(ck["rng_cuda"])
-        self.step, self.elapsed, self.skipped = ck["step"], ck["elapsed"], ck["skipped"]
+        self.step, self.skipped = ck["step"], ck["skipped"]
+        self.elapsed = ck["elapsed"] + self.setup_seconds  # the earlier runs' time and this run's setup
         return True
 
     # ----------------------------------------------------------------- one step

@@ -54,6 +54,8 @@ def run(job: Job) -> Done | None:
     if trainer.step < cfg.iterations:
         return None
     trainer.finish()
-    print(f"train: {trainer.step} steps in {trainer.elapsed:.1f} s → {ws.model / 'final.pt'}")
-    return Done({"wall": round(time.perf_counter() - t0, 3), "skipped": trainer.skipped}, seconds=trainer.elapsed)
+    print(f"train: {trainer.step} steps in {trainer.elapsed:.1f} s (setup {trainer.setup_seconds:.1f} s) → "
+          f"{ws.model / 'final.pt'}")
+    return Done({"wall": round(time.perf_counter() - t0, 3), "setup": round(trainer.setup_seconds, 3),
+                 "skipped": trainer.skipped}, seconds=trainer.elapsed)
 

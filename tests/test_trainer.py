@@ -238,3 +238,19 @@ def test_mlp_field_trains_at_one_resolution(small_ws, tmp_path):
     cfg = tiny_cfg(iterations=2, coarse_res=16, field=FieldConfig(kind="mlp", hidden=16, mlp_layers=1))
     t = train(cfg, load_scene(small_ws, torch.device("cpu")), tmp_path)
     assert not t.coarse and t.upsample_step is None and t.step == 2
+
+
+def test_training_time_counts_its_setup_and_a_resume_adds_its_own(small_ws, tmp_path):
+    """What training took, as the train stage reports it, includes the initial occupancy (the visual hull; the
+    photo hull's carving), which the steps' time alone hid; a resumed run adds its own setup to the checkpoint's."""
+    import torch as _torch
+
+    cfg = tiny_cfg(iterations=4, checkpoint_every=2)
+    data = load_scene(small_ws, _torch.device("cpu"))
+    fresh = Trainer(cfg, data, tmp_path / "a")
+    assert fresh.setup_seconds > 0 and fresh.elapsed == fresh.setup_seconds
+    train(cfg, data, tmp_path / "b", stop_after=2)
+    saved = _torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)["elapsed"]
+    resumed = Trainer(cfg, data, tmp_path / "b")
+    assert resumed.try_resume()
+    assert resumed.elapsed == pytest.approx(saved + resumed.setup_seconds)
