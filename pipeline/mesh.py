@@ -50,6 +50,11 @@ class MeshConfig:
     """Taubin smoothing iterations of the clean mesh (0: off)."""
     max_faces: int = 40000
     """Decimate the clean mesh to at most this many faces (quadric edge collapse)."""
+    drop_unseen: bool = False
+    """Remove the faces that no pixel centre of any photo sees first (ray-cast through every pixel of every view in
+    cameras.npz): the back of an object photographed from one side, which otherwise closes along the working sphere
+    and takes the texture field's guessed colours, and the underside where it stands. The mesh is then open, as
+    photogrammetry's is; off: one closed surface."""
     frame: Literal["sfm", "normalized"] = "sfm"
     """Frame of the written meshes: 'sfm' (the frame of cameras.npz) or 'normalized' (unit sphere)."""
     device: str = "auto"
@@ -157,6 +162,41 @@ def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig,
     return np.asarray(m.vertices), np.asarray(m.faces), dropped
 
 
+def seen_faces(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, R: np.ndarray, centres: np.ndarray,
+               sizes: list[tuple[int, int]]) -> np.ndarray:
+    """(F,) bool: the faces some view sees first through a pixel centre; ``K``, ``R``, ``centres`` (N, …) in the
+    frame of ``verts``, ``sizes`` each view's (height, width)."""
+    from .raycast import mesh_intersector, pixel_center_rays
+
+    if len(K) != len(sizes) or len(R) != len(K) or len(centres) != len(K):
+        raise ValueError(f"seen_faces: {len(K)} K, {len(R)} R, {len(centres)} centres and {len(sizes)} sizes differ")
+    hits = mesh_intersector(trimesh.Trimesh(verts, faces, process=False))
+    seen = np.zeros(len(faces), bool)
+    for k, (h, w) in enumerate(sizes):
+        first = hits.intersects_first(*pixel_center_rays(K[k], R[k], centres[k], w, h))
+        seen[first[first >= 0]] = True
+    return seen
+
+
+def _drop_unseen(ws, verts: np.ndarray, faces: np.ndarray, scale_mat: np.ndarray,
+                 min_ratio: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """The clean mesh (normalized frame) without the faces no photo of the workspace sees, small pieces dropped
+    again; and how many faces went."""
+    import cv2
+
+    from dvr.cameras import load_cameras, to_sfm
+    from dvr.data import list_images
+
+    cams = load_cameras(ws.cameras)
+    sizes = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED).shape[:2] for p in list_images(ws.images)]
+    seen = seen_faces(to_sfm(verts, scale_mat), faces, cams.K, cams.R, cams.sfm_centers, sizes)
+    kept = faces[seen]
+    kept = keep_large_components(verts, kept, min_ratio) if len(kept) else kept
+    m = trimesh.Trimesh(verts, kept, process=False)
+    m.remove_unreferenced_vertices()
+    return np.asarray(m.vertices), np.asarray(m.faces), int(len(faces) - len(m.faces))
+
+
 def sfm_points(path, scale_mat: np.ndarray) -> np.ndarray | None:
     """The cameras stage's sparse points (``points.ply``, SfM frame) in the field's frame (``scale_mat``: field →
     SfM); None when there is no such file (a workspace from given cameras without triangulation)."""
@@ -210,11 +250,19 @@ def run(job: Job) -> Done:
     for piece in dropped:
         print(f"mesh: dropped a floating piece of {piece['faces']} faces: {piece['points']} SfM points lie on it, "
               f"where the object's density of points would put {piece['expected']:.0f}")
+    unseen = 0
+    if cfg.drop_unseen:
+        cv, cf, unseen = _drop_unseen(ws, cv, cf, scale_mat, cfg.min_component_ratio)
+        print(f"mesh: dropped {unseen} faces no photo sees (--mesh.drop-unseen)")
+        if len(cf) == 0:
+            raise StageError(f"{ws.cameras}: no photo sees the mesh; check the cameras, or mesh without "
+                             f"--mesh.drop-unseen")
     with torch.no_grad():
         pts = torch.from_numpy(cv).float().to(dev)
         cc = evaluate_in_chunks(field.texture, pts, 65536, trailing_shape=(3,))
     _export(clean, cv, cf, (cc.clamp(0, 1) * 255).round().byte().cpu().numpy(), scale_mat, to_norm, cfg.frame)
     units = mesh_units(ws.root, cfg.frame)  # {} unless a printed board put cameras.npz in metres
     print(f"mesh: {len(f)} raw faces, {len(cf)} clean faces{' (metres)' if units else ''} → {clean}")
-    return Done({"raw_faces": int(len(f)), "clean_faces": int(len(cf)), "frame": cfg.frame, "floaters": dropped,
+    return Done({"raw_faces": int(len(f)), "clean_faces": int(len(cf)), "unseen_faces": unseen, "frame": cfg.frame,
+                 "floaters": dropped,
                  **units})

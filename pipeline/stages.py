@@ -116,7 +116,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("mesh", "Extract and clean the mesh (reads model/, points.ply; writes mesh/raw.ply and mesh/clean.ply).",
           mesh.run, mesh.MeshConfig,
           requires=lambda ws: [(ws.model / "final.pt", "train")],
-          inputs=lambda ws, src: [ws.model / "final.pt", ws.root / "points.ply"],
+          inputs=lambda ws, src: [ws.model / "final.pt", ws.root / "points.ply", ws.cameras],
           outputs=lambda ws: [ws.mesh / "clean.ply", ws.mesh / "raw.ply"]),
     Stage("texture", "UV-texture the clean mesh from the photos (reads mesh/clean.ply, model/, images/, "
           "cameras.npz; writes mesh/textured.obj/.mtl/.png and mesh/textured.glb).", texture.run, texture.TextureConfig,

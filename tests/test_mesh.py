@@ -1,6 +1,7 @@
 """Stage mesh: cleaning (small components, holes, decimation to the face budget)."""
 
 import numpy as np
+import pytest
 import trimesh
 
 from pipeline.mesh import MeshConfig, clean_mesh, floaters, keep_large_components
@@ -167,3 +168,59 @@ def test_unreadable_points_are_a_clear_error(tmp_path):
     with pytest.raises(StageError, match="points.ply: unreadable SfM points .*rerun the cameras stage"):
         sfm_points(bad, np.eye(4))
     assert sfm_points(tmp_path / "none.ply", np.eye(4)) is None
+
+
+def _camera_at(centre, target=(0.0, 0.0, 0.0), f=60.0, size=64):
+    """K, world→camera R and the centre of a pinhole camera at ``centre`` looking at ``target`` (y down)."""
+    c, t = np.asarray(centre, float), np.asarray(target, float)
+    z = (t - c) / np.linalg.norm(t - c)
+    x = np.cross(z, [0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    return K, R, c
+
+
+def test_seen_faces_are_the_ones_facing_a_camera_and_never_the_far_side():
+    from pipeline.mesh import seen_faces
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    K, R, C = _camera_at([0.0, 0.0, 3.0])
+    seen = seen_faces(ball.vertices, ball.faces, K[None], R[None], C[None], [(64, 64)])
+    facing = ((C - ball.triangles_center) * ball.face_normals).sum(1) > 0
+    assert seen.any() and not (seen & ~facing).any()  # nothing behind the ball's outline
+    assert seen.sum() > 0.5 * facing.sum()  # most of the near half, at 64 px
+    with pytest.raises(ValueError, match="differ"):
+        seen_faces(ball.vertices, ball.faces, K[None], R[None], C[None], [(64, 64), (64, 64)])
+
+
+def test_the_mesh_stage_drops_what_no_photo_sees_only_when_asked(small_ws, tmp_path, monkeypatch):
+    """--mesh.drop-unseen: a ball seen by the small scene's ring of cameras loses its poles (no view looks straight
+    down or up at them) and nothing any view sees; by default the mesh stays one closed surface."""
+    import json
+    import shutil
+
+    from dvr.cameras import load_cameras
+    from pipeline import mesh as mesh_stage
+    from pipeline.config import Config
+    from pipeline.stages import run_stage
+    from tests.conftest import tiny_training
+
+    ws = tmp_path / "ws"
+    shutil.copytree(small_ws, ws)
+    cfg = tiny_training(Config(), iterations=5, batch_rays=128)
+    run_stage("train", ws, cfg)
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.4)
+    monkeypatch.setattr(mesh_stage, "extract_mesh",
+                        lambda *a, **k: (ball.vertices, ball.faces, np.full((len(ball.vertices), 3), 0.5)))
+    run_stage("mesh", ws, cfg)
+    assert trimesh.load(ws / "mesh" / "clean.ply").is_watertight
+    cfg.mesh.drop_unseen = True
+    run_stage("mesh", ws, cfg)
+    open_mesh = trimesh.load(ws / "mesh" / "clean.ply")
+    stamp = json.loads((ws / ".stages" / "mesh.json").read_text())
+    assert stamp["unseen_faces"] > 0 and not open_mesh.is_watertight
+    cams = load_cameras(ws / "cameras.npz")
+    sizes = [(64, 64)] * len(cams.K)
+    # every face left is seen by some view (the clean mesh is written in the SfM frame)
+    assert mesh_stage.seen_faces(open_mesh.vertices, open_mesh.faces, cams.K, cams.R, cams.sfm_centers, sizes).all()
