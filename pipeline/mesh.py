@@ -163,9 +163,10 @@ def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig,
 
 
 def seen_faces(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, R: np.ndarray, centres: np.ndarray,
-               sizes: list[tuple[int, int]]) -> np.ndarray:
+               sizes: list[tuple[int, int]], max_rays: int = 1 << 20) -> np.ndarray:
     """(F,) bool: the faces some view sees first through a pixel centre; ``K``, ``R``, ``centres`` (N, …) in the
-    frame of ``verts``, ``sizes`` each view's (height, width)."""
+    frame of ``verts``, ``sizes`` each view's (height, width). A view of more than ``max_rays`` pixels casts through
+    the centres of a coarser grid of them (every s-th pixel's neighbourhood: a 12 MP photo through 1 M rays)."""
     from .raycast import mesh_intersector, pixel_center_rays
 
     if len(K) != len(sizes) or len(R) != len(K) or len(centres) != len(K):
@@ -173,7 +174,9 @@ def seen_faces(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, R: np.ndarra
     hits = mesh_intersector(trimesh.Trimesh(verts, faces, process=False))
     seen = np.zeros(len(faces), bool)
     for k, (h, w) in enumerate(sizes):
-        first = hits.intersects_first(*pixel_center_rays(K[k], R[k], centres[k], w, h))
+        s = max(1.0, float(np.sqrt(h * w / max_rays)))
+        coarse = np.diag([1.0 / s, 1.0 / s, 1.0]) @ K[k]
+        first = hits.intersects_first(*pixel_center_rays(coarse, R[k], centres[k], int(w / s), int(h / s)))
         seen[first[first >= 0]] = True
     return seen
 
@@ -182,13 +185,16 @@ def _drop_unseen(ws, verts: np.ndarray, faces: np.ndarray, scale_mat: np.ndarray
                  min_ratio: float) -> tuple[np.ndarray, np.ndarray, int]:
     """The clean mesh (normalized frame) without the faces no photo of the workspace sees, small pieces dropped
     again; and how many faces went."""
-    import cv2
+    from PIL import Image
 
     from dvr.cameras import load_cameras, to_sfm
     from dvr.data import list_images
 
     cams = load_cameras(ws.cameras)
-    sizes = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED).shape[:2] for p in list_images(ws.images)]
+    sizes = []
+    for path in list_images(ws.images):
+        with Image.open(path) as im:  # the header only
+            sizes.append(im.size[::-1])
     seen = seen_faces(to_sfm(verts, scale_mat), faces, cams.K, cams.R, cams.sfm_centers, sizes)
     kept = faces[seen]
     kept = keep_large_components(verts, kept, min_ratio) if len(kept) else kept

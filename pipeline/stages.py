@@ -113,7 +113,8 @@ STAGES: tuple[Stage, ...] = (
           requires=lambda ws: [(ws.images, "cameras"), (ws.masks, "masks"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.images, ws.masks, ws.cameras] + ([ws.depth] if ws.depth.exists() else []),
           outputs=lambda ws: [ws.model / "final.pt"]),
-    Stage("mesh", "Extract and clean the mesh (reads model/, points.ply; writes mesh/raw.ply and mesh/clean.ply).",
+    Stage("mesh", "Extract and clean the mesh (reads model/, points.ply, with --mesh.drop-unseen cameras.npz; writes "
+          "mesh/raw.ply and mesh/clean.ply).",
           mesh.run, mesh.MeshConfig,
           requires=lambda ws: [(ws.model / "final.pt", "train")],
           inputs=lambda ws, src: [ws.model / "final.pt", ws.root / "points.ply", ws.cameras],

@@ -224,3 +224,18 @@ def test_the_mesh_stage_drops_what_no_photo_sees_only_when_asked(small_ws, tmp_p
     sizes = [(64, 64)] * len(cams.K)
     # every face left is seen by some view (the clean mesh is written in the SfM frame)
     assert mesh_stage.seen_faces(open_mesh.vertices, open_mesh.faces, cams.K, cams.R, cams.sfm_centers, sizes).all()
+
+
+def test_a_large_photo_casts_through_a_coarser_grid_and_still_sees_what_faces_it():
+    """Above max_rays a view casts through a coarser grid: it sees no face the full grid does not, and still every
+    face turned towards it (only faces at grazing angles, a pixel or two wide, can fall between its rays)."""
+    from pipeline.mesh import seen_faces
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    K, R, C = _camera_at([0.0, 0.0, 3.0], f=240.0, size=256)
+    full = seen_faces(ball.vertices, ball.faces, K[None], R[None], C[None], [(256, 256)])
+    coarse = seen_faces(ball.vertices, ball.faces, K[None], R[None], C[None], [(256, 256)], max_rays=64 * 64)
+    to_cam = C - ball.triangles_center
+    cos = (to_cam * ball.face_normals).sum(1) / np.linalg.norm(to_cam, axis=1)
+    assert not (coarse & ~full).any() and (full & ~coarse).any()  # the coarse grid was used
+    assert coarse[cos > 0.5].all() and full[cos > 0.5].all() and (cos > 0.5).sum() > 50
