@@ -30,6 +30,7 @@ def main() -> None:
 
     from dvr.cameras import load_cameras
     from dvr.data import list_images
+    from dvr.metrics import masked_psnr
     from pipeline.texture import render_textured
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -53,12 +54,10 @@ def main() -> None:
             parts[key][0] += float(se[m].sum())
             parts[key][1] += int(m.sum())
         both = mask & hit
-        r, p = img[both], photo[both]
-        g = (r * p).sum(0) / np.maximum((r * r).sum(0), 1e-12)
-        gains[path.stem] = [round(float(x), 3) for x in g]
-        raw.append(psnr(((r - p) ** 2).mean()))
-        fitted.append(psnr(((np.clip(r * g, 0, 1) - p) ** 2).mean()))
-        blurred.append(psnr(((r - cv2.GaussianBlur(photo, (0, 0), a.blur)[both]) ** 2).mean()))
+        gains[path.stem] = [round(float(x), 3) for x in ev.photo_gains(img, photo, both)]
+        raw.append(ev.image_psnr(img, both, photo, both))
+        fitted.append(ev.image_psnr(img, both, photo, both, gain_fit=True))
+        blurred.append(masked_psnr(img, cv2.GaussianBlur(photo, (0, 0), a.blur), both))
     total_se, total_px = sum(v[0] for v in parts.values()), sum(v[1] for v in parts.values())
     print(json.dumps({
         "parts": {k: {"share_of_error": round(se / total_se, 3), "share_of_pixels": round(n / total_px, 4),

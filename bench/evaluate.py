@@ -130,19 +130,27 @@ def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray, gain
 
 def image_psnr(img: np.ndarray, hit: np.ndarray, photo: np.ndarray, mask: np.ndarray, gain_fit: bool = False) -> float:
     """PSNR of a render ``img`` (H, W, 3) whose mesh covers ``hit`` against a photo, over ``mask`` ∪ ``hit``.
-    ``gain_fit``: after scaling each colour channel of the render by the least-squares gain to the photo (a photo's
-    own exposure and white balance cannot be predicted by one texture; what remains is the texture's error), fitted
-    where the photo is not over-exposed and clipped to [0, 1] as the camera clips (else a brighter view's clipped
-    pixels count against the right texture)."""
+    ``gain_fit``: after scaling each colour channel of the render by :func:`photo_gains` there (a photo's own
+    exposure and white balance cannot be predicted by one texture; what remains is the texture's error), clipped to
+    [0, 1] as the camera clips (else a brighter view's clipped pixels count against the right texture)."""
     from dvr.metrics import masked_psnr
-    from pipeline.texture import TextureConfig
 
     m = mask | hit
-    fit = m & (photo < TextureConfig.clipped_level).all(-1) if gain_fit else None
-    if gain_fit and fit.any():
-        a, b = img[fit], photo[fit]
-        img = np.clip(img * ((a * b).sum(0) / np.maximum((a * a).sum(0), 1e-12)), 0.0, 1.0)
+    if gain_fit:
+        img = np.clip(img * photo_gains(img, photo, m), 0.0, 1.0)
     return masked_psnr(img, photo, m)
+
+
+def photo_gains(img: np.ndarray, photo: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """(3,) the least-squares gains per colour channel from a render ``img`` to a photo over the pixels ``where``
+    the photo is not over-exposed (a clipped channel only says "at least this bright"); ones where none is left."""
+    from pipeline.texture import TextureConfig
+
+    fit = where & (photo < TextureConfig.clipped_level).all(-1)
+    if not fit.any():
+        return np.ones(3)
+    a, b = img[fit], photo[fit]
+    return (a * b).sum(0) / np.maximum((a * a).sum(0), 1e-12)
 
 
 def _read_rgb(path: Path) -> np.ndarray:
