@@ -6,9 +6,9 @@ photo held out) with options of any stage, e.g. another SfM mapping of the same 
     python bench/dtu_arm.py --reference-cameras     # DTU's own calibrated cameras instead of our SfM
 
 Prints one JSON line: held-out PSNR, PSNR at the training views (both also after fitting each photo's own colour
-gains) and on the mesh's own held-out pixels, pose error against DTU's cameras, seconds per stage. Options of the
-stages before training get their own cached cameras, masks and depth (``bench/runs/dtu_all-<options>``; delete it to
-redo them); the training runs in ``bench/runs/work/dtu_arm``.
+gains), re-aimed (:mod:`bench.reaim`) and on the mesh's own held-out pixels, pose error against DTU's cameras,
+seconds per stage. Options of the stages before training get their own cached cameras, masks and depth
+(``bench/runs/dtu_all-<options>``; delete it to redo them); the training runs in ``bench/runs/work/dtu_arm``.
 """
 from __future__ import annotations
 
@@ -35,7 +35,8 @@ def main() -> None:
     work.mkdir(parents=True)
     r = ev.run_dtu({"knob": "arm", "preset": a.preset, "reference_cameras": a.reference_cameras}, work,
                    {"arm": (options, {})})
-    keys = ("psnr", "psnr_train", "psnr_gain_fit", "psnr_train_gain_fit", "psnr_on_model", "pose", "seconds", "rung")
+    keys = ("psnr", "psnr_train", "psnr_gain_fit", "psnr_train_gain_fit", "psnr_on_model", "psnr_reaimed",
+            "reaim_deg", "pose", "seconds", "rung")
     print(json.dumps({"options": " ".join(options), "preset": a.preset, "reference_cameras": a.reference_cameras,
                       **{k: r[k] for k in keys}}))
 

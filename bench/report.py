@@ -86,6 +86,8 @@ def _psnr(r: dict) -> str:
     txt = _fmt(r["psnr"], "{:.1f}")
     if r.get("psnr_gt_pose") is not None:
         txt += f" ({r['psnr_gt_pose']:.1f} at GT pose)"
+    if r.get("psnr_reaimed") is not None:  # each held-out view turned about its centre onto its photo
+        txt += f"; re-aimed {r['psnr_reaimed']:.1f}"
     if r.get("psnr_train") is not None:
         txt += f" (training views {r['psnr_train']:.1f})"
     if r.get("psnr_train_gain_fit") is not None:  # DTU: each photo's own exposure, fitted

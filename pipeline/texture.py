@@ -384,18 +384,37 @@ def sample_bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray
 def render_textured(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: np.ndarray, K: np.ndarray,
                     R: np.ndarray, center: np.ndarray, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
     """Ray-cast a UV-textured mesh (same frame as the camera): image (h, w, 3) and hit mask (h, w)."""
-    mesh = trimesh.Trimesh(verts, faces, process=False)
-    o, d = pixel_center_rays(K, R, center, w, h)
-    loc, ir, it = mesh_intersector(mesh).intersects_location(o, d, multiple_hits=False)
-    img = np.zeros((h * w, 3))
-    hit = np.zeros(h * w, bool)
-    if len(ir):
-        bary = trimesh.triangles.points_to_barycentric(mesh.triangles[it], loc)
-        uv = (uvs[faces[it]] * bary[:, :, None]).sum(1)
-        S = tex.shape[0]
-        img[ir] = sample_bilinear(tex, uv[:, 0] * S - 0.5, (1 - uv[:, 1]) * S - 0.5)
-        hit[ir] = True
-    return img.reshape(h, w, 3), hit.reshape(h, w)
+    return TexturedCaster(verts, faces, uvs, tex).render(K, R, center, w, h)
+
+
+class TexturedCaster:
+    """A UV-textured mesh ready to be ray-cast from many cameras (its ray intersector built once)."""
+
+    def __init__(self, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: np.ndarray):
+        self.mesh = trimesh.Trimesh(verts, faces, process=False)
+        self.intersector = mesh_intersector(self.mesh)
+        self.uvs, self.tex = uvs, tex
+
+    def render(self, K: np.ndarray, R: np.ndarray, center: np.ndarray, w: int, h: int,
+               box: tuple[int, int, int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Image (h, w, 3) and hit mask (h, w) at a pinhole camera; with ``box`` = (y0, y1, x0, x1) only the rays
+        of those pixels are cast (the rest black, not hit)."""
+        o, d = pixel_center_rays(K, R, center, w, h)
+        keep = np.arange(h * w)
+        if box is not None:
+            y0, y1, x0, x1 = box
+            keep = (np.arange(y0, y1)[:, None] * w + np.arange(x0, x1)[None]).ravel()
+        loc, ir, it = self.intersector.intersects_location(o[keep], d[keep], multiple_hits=False)
+        img = np.zeros((h * w, 3))
+        hit = np.zeros(h * w, bool)
+        if len(ir):
+            ir = keep[ir]
+            bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[it], loc)
+            uv = (self.uvs[self.mesh.faces[it]] * bary[:, :, None]).sum(1)
+            S = self.tex.shape[0]
+            img[ir] = sample_bilinear(self.tex, uv[:, 0] * S - 0.5, (1 - uv[:, 1]) * S - 0.5)
+            hit[ir] = True
+        return img.reshape(h, w, 3), hit.reshape(h, w)
 
 
 def upright(cams: Cameras, frame: str) -> tuple[np.ndarray, str]:

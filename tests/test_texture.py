@@ -830,3 +830,21 @@ def test_unreadable_clean_mesh_is_one_line(tmp_path):
     box = trimesh.creation.box()
     box.export(path)
     assert len(read_clean_mesh(path).faces) == 12
+
+
+def test_textured_caster_box_casts_only_its_pixels():
+    """TexturedCaster.render with a box: the full render inside the box, nothing outside it."""
+    from pipeline.texture import TexturedCaster
+
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    uv = (ball.vertices[:, :2] + 1) / 2
+    tex = np.random.default_rng(0).random((32, 32, 3))
+    K = np.array([[120.0, 0, 40], [0, 120.0, 30], [0, 0, 1]])
+    caster = TexturedCaster(ball.vertices, ball.faces, uv, tex)
+    full, hit = caster.render(K, np.eye(3), np.array([0.0, 0, -4]), 80, 60)
+    part, phit = caster.render(K, np.eye(3), np.array([0.0, 0, -4]), 80, 60, box=(10, 35, 20, 50))
+    assert hit[10:35, 20:50].any() and hit.sum() > phit.sum()
+    assert np.array_equal(phit[10:35, 20:50], hit[10:35, 20:50]) and not phit[:10].any() and not phit[:, 50:].any()
+    assert np.array_equal(part[10:35, 20:50], full[10:35, 20:50]) and not part[35:].any()
+    ref, ref_hit = render_textured(ball.vertices, ball.faces, uv, tex, K, np.eye(3), np.array([0.0, 0, -4]), 80, 60)
+    assert np.array_equal(ref, full) and np.array_equal(ref_hit, hit)
