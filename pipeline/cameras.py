@@ -101,8 +101,9 @@ class CamerasConfig:
     the jar's rotation error falls (0.070 → 0.051°) while its held-out views' picture of the object moves further
     from the truth (0.13 → 0.19 px, ``bench/object_px.py``), and held-out photos are rendered at the poses SfM gave
     them; with each held-out camera re-aimed onto its photo (``bench/reaim.py``, stop 42) the jar gains 0.17 dB
-    and the cow 1.06, but the book loses 0.63 and DTU 0.64 in the mesh itself. On real photos the error tail is partly model misfit (DTU's principal point is off-centre). Off by
-    default for a model from the ladder's first rung; a later rung's model gets ``climbed_passes``."""
+    and the cow 1.06, but the book loses 0.63 and DTU 0.64 in the mesh itself. On real photos the error tail is
+    partly model misfit (DTU's principal point is off-centre). Off by default for a model from the ladder's first
+    rung; a later rung's model gets ``climbed_passes``."""
     climbed_passes: int = 3
     """Passes of the final adjustment (as ``final_passes``, whichever is more) for a model that a later rung of the
     ladder gave: the first rung's model fell short, and the later rungs' features (16 k, guided matching, DSP-SIFT)
