@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-COARSE_SIGMA_PX = 2.0  # first fit on both images blurred by this (a pull from up to a few pixels), then sharp
+COARSE_SIGMA_PX = 2.0  # first fit on both images blurred by this (a pull from up to a few pixels), ...
+FINE_SIGMA_PX = 0.7  # ... then by this (sharper, and the bilinear warp's own blur matters less against it)
 MAX_TURN_PX = 8.0  # the most a view is turned (pixels at the image centre); SfM's error is a fraction of a pixel
 
 
@@ -54,11 +55,9 @@ def fit_rotation(img: np.ndarray, hit: np.ndarray, photo: np.ndarray, mask: np.n
         union = cover + m - cover * m
         return (union * ((out[0, :3] - r[0, :3]) ** 2).sum(0)).sum() / (h * w)
 
-    for sigma in (COARSE_SIGMA_PX, 0.7):
-        s, r = src, ref
-        if sigma > 0:
-            k = 2 * int(3 * sigma) + 1
-            s, r = (gaussian_blur2d(a, (k, k), (sigma, sigma)) for a in (src, ref))
+    for sigma in (COARSE_SIGMA_PX, FINE_SIGMA_PX):
+        k = 2 * int(3 * sigma) + 1
+        s, r = (gaussian_blur2d(a, (k, k), (sigma, sigma)) for a in (src, ref))
         opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe")
 
         def closure(opt=opt, s=s, r=r):
