@@ -42,12 +42,13 @@ def fit_rotation(img: np.ndarray, hit: np.ndarray, photo: np.ndarray, mask: np.n
     jj, ii = torch.meshgrid(torch.arange(w, dtype=torch.float64) + 0.5, torch.arange(h, dtype=torch.float64) + 0.5,
                             indexing="xy")
     pix = torch.stack([jj, ii, torch.ones_like(jj)], -1).reshape(-1, 3)
+    Kt_inv = torch.linalg.inv(Kt)
     focal = float(K[0, 0] + K[1, 1]) / 2
     theta = torch.zeros(3, dtype=torch.float64, requires_grad=True)  # the axis-angle times the focal length (px)
 
     def loss(s: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
         Rd = axis_angle_to_rotation_matrix((theta / focal)[None])[0]
-        q = pix @ (Kt @ Rd.T @ torch.linalg.inv(Kt)).T  # where each output pixel's ray lay before the turn
+        q = pix @ (Kt @ Rd.T @ Kt_inv).T  # where each output pixel's ray lay before the turn
         xy = q[:, :2] / q[:, 2:]
         grid = torch.stack([2 * xy[:, 0] / w - 1, 2 * xy[:, 1] / h - 1], -1).reshape(1, h, w, 2)
         out = F.grid_sample(s, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
@@ -79,6 +80,11 @@ def _turn(theta: np.ndarray, focal: float) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(theta, float) / focal)[0]
 
 
+def degrees_turned(Rd: np.ndarray) -> float:
+    """The angle (degrees) of the rotation ``Rd``."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1.0, 1.0))))
+
+
 def reaim(caster, K: np.ndarray, R: np.ndarray, centre: np.ndarray, photo: np.ndarray, mask: np.ndarray,
           steps_px: tuple[float, ...] = (0.5, 0.25, 0.12, 0.06)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(Rd, image, hit): the turn about the camera's centre whose fresh render of ``caster``
@@ -87,6 +93,8 @@ def reaim(caster, K: np.ndarray, R: np.ndarray, centre: np.ndarray, photo: np.nd
     :func:`fit_rotation`'s (a fit on warped renders, which bilinear resampling blurs, so not trusted for the last
     fraction of a pixel), then a compass search on fresh renders, one axis at a time, in ``steps_px`` (pixels at the
     image centre; each halving once no step helps). Never worse than no turn."""
+    import cv2
+
     h, w = photo.shape[:2]
     focal = float(K[0, 0] + K[1, 1]) / 2
     img, hit = caster.render(K, R, centre, w, h)
@@ -96,14 +104,14 @@ def reaim(caster, K: np.ndarray, R: np.ndarray, centre: np.ndarray, photo: np.nd
     pad = int(np.ceil(MAX_TURN_PX)) + 4  # the box holds every pixel a turn the search may try brings in
     box = (max(0, ys.min() - pad), min(h, ys.max() + pad + 1), max(0, xs.min() - pad), min(w, xs.max() + pad + 1))
 
+    def sse(i, c):
+        return float(((i - photo)[mask | c] ** 2).sum())
+
     def error(theta):
         i, c = caster.render(K, _turn(theta, focal) @ R, centre, w, h, box)
-        u = mask | c
-        return float(((i - photo)[u] ** 2).sum()), i, c
+        return sse(i, c), i, c
 
-    best = (np.zeros(3), *error(np.zeros(3)))
-    import cv2
-
+    best = (np.zeros(3), sse(img, hit), img, hit)  # the box holds every pixel of the render at no turn
     start = cv2.Rodrigues(fit_rotation(img, hit, photo, mask, K))[0].ravel() * focal
     if np.linalg.norm(start) <= MAX_TURN_PX and (tried := (start, *error(start)))[1] < best[1]:
         best = tried
@@ -129,8 +137,7 @@ def reaimed_psnr(caster, K: np.ndarray, R: np.ndarray, centre: np.ndarray, photo
     from bench.evaluate import image_psnr
 
     Rd, img, hit = reaim(caster, K, R, centre, photo, mask)
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1.0, 1.0))))
-    return image_psnr(img, hit, photo, mask), angle
+    return image_psnr(img, hit, photo, mask), degrees_turned(Rd)
 
 
 def picture(arm: Path, scene: str, view: int, out: Path) -> None:
@@ -164,8 +171,7 @@ def picture(arm: Path, scene: str, view: int, out: Path) -> None:
     y0, y1, x0, x1 = max(0, ys.min() - 8), min(h, ys.max() + 9), max(0, xs.min() - 8), min(w, xs.max() + 9)
     row = np.concatenate([t[y0:y1, x0:x1] for t in tiles], 1)
     cv2.imwrite(str(out), (row * 255).round().astype(np.uint8)[..., ::-1])
-    turned = float(np.degrees(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1.0, 1.0))))
-    print(f"picture: {out} (re-aimed by {turned:.3f}°)")
+    print(f"picture: {out} (re-aimed by {degrees_turned(Rd):.3f}°)")
 
 
 if __name__ == "__main__":

@@ -51,19 +51,15 @@ def test_reaimed_heldout_figure_turns_each_view_onto_its_photo(tmp_path):
     """bench/evaluate.py reaimed_psnrs: a textured ball's held-out photo taken from a turned camera scores higher
     re-aimed than at the camera given, and the mean turn is the one applied."""
     import cv2
-    import trimesh
 
     from bench.evaluate import _read_mask, _read_rgb, reaimed_psnrs, render_psnr
     from pipeline.texture import TexturedCaster
-    from tests.test_bench_reaim import H, K, W, _rot
+    from tests.test_bench_reaim import H, K, W, _rot, textured_ball
 
-    ball = trimesh.creation.icosphere(subdivisions=4)
-    x, y, z = ball.vertices.T
-    uv = np.stack([np.arctan2(y, x) / (2 * np.pi) + 0.5, np.arccos(np.clip(z, -1, 1)) / np.pi], -1)
-    tex = cv2.GaussianBlur(np.random.default_rng(2).random((128, 128, 3)), (0, 0), 2.0)
-    tm = trimesh.Trimesh(ball.vertices, ball.faces, visual=trimesh.visual.TextureVisuals(uv=uv), process=False)
+    tm, tex = textured_ball(seed=2)
     centre = np.array([0.0, 0.0, -4.0])
-    photo, mask = TexturedCaster(tm.vertices, tm.faces, uv, tex).render(K, _rot((1, 0.2, 0), 0.3), centre, W, H)
+    caster = TexturedCaster(tm.vertices, tm.faces, tm.visual.uv, tex)
+    photo, mask = caster.render(K, _rot((1, 0.2, 0), 0.3), centre, W, H)
     cv2.imwrite(str(tmp_path / "p.png"), (np.clip(photo, 0, 1) * 255).round().astype(np.uint8)[..., ::-1])
     cv2.imwrite(str(tmp_path / "m.png"), mask.astype(np.uint8) * 255)
     got = reaimed_psnrs(tm, tex, [(K, np.eye(3), centre, tmp_path / "p.png", tmp_path / "m.png")])

@@ -56,18 +56,25 @@ def test_shapes_are_checked():
         fit_rotation(img, hit, img[:-1], hit, K)
 
 
-def _textured_ball():
-    """A unit ball with a smooth random texture on spherical UVs, ray-cast by TexturedCaster."""
+def textured_ball(seed: int = 1):
+    """A unit ball (trimesh, UVs on its visual) with a smooth random texture on spherical UVs, and that texture."""
     import trimesh
-
-    from pipeline.texture import TexturedCaster
 
     ball = trimesh.creation.icosphere(subdivisions=4)
     x, y, z = ball.vertices.T
     uv = np.stack([np.arctan2(y, x) / (2 * np.pi) + 0.5, np.arccos(np.clip(z, -1, 1)) / np.pi], -1)
-    rng = np.random.default_rng(1)
-    tex = cv2.GaussianBlur(rng.random((128, 128, 3)), (0, 0), 2.0)
-    return TexturedCaster(ball.vertices, ball.faces, uv, (tex - tex.min()) / (tex.max() - tex.min()))
+    tex = cv2.GaussianBlur(np.random.default_rng(seed).random((128, 128, 3)), (0, 0), 2.0)
+    visual = trimesh.visual.TextureVisuals(uv=uv)
+    return trimesh.Trimesh(ball.vertices, ball.faces, visual=visual, process=False), \
+        (tex - tex.min()) / (tex.max() - tex.min())
+
+
+def _textured_ball():
+    """:func:`textured_ball` ready to be ray-cast (TexturedCaster)."""
+    from pipeline.texture import TexturedCaster
+
+    tm, tex = textured_ball()
+    return TexturedCaster(tm.vertices, tm.faces, tm.visual.uv, tex)
 
 
 def test_reaim_turns_a_render_onto_a_photo_taken_from_a_turned_camera():
