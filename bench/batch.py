@@ -4,9 +4,11 @@ one after the other with ``python -m pipeline reconstruct`` (what a shell loop d
 cores, from /proc/stat, so Ray's worker processes count), and the seconds per stage of a capture in each.
 
     python bench/batch.py [--config configs/fast.yaml] [--gpu-train SECONDS]
+    python bench/batch.py --gpu-train SECONDS --rows-from bench/results/<date>-batch.json   # the table only
 
-``--gpu-train``: the train stage's seconds per capture measured on a GPU (``bench/batch.py`` prints the command);
-with it the scaling table also has GPU rows. Writes bench/results/<date>-batch.json.
+``--gpu-train``: the train stage's seconds per capture measured on a GPU (``bench/gpu.py train`` on the four
+captures); with it the scaling table also has GPU rows. ``--rows-from``: the table from an earlier run's seconds per
+stage, without running anything. Writes bench/results/<date>-batch.json.
 """
 
 from __future__ import annotations
@@ -89,7 +91,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", default=str(ROOT / "configs" / "fast.yaml"))
     ap.add_argument("--gpu-train", type=float, default=None, help="train stage seconds per capture on one GPU")
+    ap.add_argument("--rows-from", type=Path, default=None, help="an earlier run's JSON: print its scaling table")
     args = ap.parse_args()
+    if args.rows_from is not None:
+        per_capture = json.loads(args.rows_from.read_text())["per_capture_stage_seconds_1core"]
+        for r in scaling(per_capture, args.gpu_train):
+            print(f"  {r['cpu_workers']} CPU workers + {r['gpus']} GPU: {r['captures_per_hour']} captures/hour")
+        return
     work = RUNS / "batch"
     captures = make_captures(work / "captures")
     py = [sys.executable, "-m", "pipeline"]

@@ -1,11 +1,14 @@
 """Training on a GPU against 2 CPU cores: the train stage of the bench's cow (GT cameras) and DTU scan24 (photos only)
 workspaces on whatever device ``device: auto`` finds, then mesh, texture and held-out PSNR as in ``bench/run.py``.
 
-    python bench/gpu.py prepare DIR            # here: the two training workspaces (images, masks, cameras, depth)
+    python bench/gpu.py prepare DIR            # here: the training workspaces (images, masks, cameras, depth)
     python bench/gpu.py train DIR [RUN...]     # on the GPU machine: the train stage per run → DIR/gpu.json
-                                               # (RUN: SCENE:PRESET; default cow:default cow:quality dtu:default)
+                                               # (RUN: SCENE:PRESET; default cow:default cow:quality dtu:default;
+                                               #  the batch's captures: torus_noise:fast … as in bench/batch.py)
     python bench/gpu.py evaluate DIR           # here again: mesh + texture + held-out PSNR per trained model
     python bench/gpu.py profile DIR            # on the GPU machine: where a default training step's time goes
+    python bench/gpu.py share DIR N...         # on the GPU machine: the batch's captures trained N at a time on the
+                                               # one GPU, one torch thread each (Ray's --batch.train-gpus 1/N)
 
 The GPU machine needs torch, numpy, scipy, scikit-image, opencv, tyro, trimesh and PyYAML (no pycolmap, pymeshlab,
 xatlas: the stages that need them run in the evaluate step).
@@ -24,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 SCENES = ("cow", "dtu")
+BATCH = ("torus_noise", "torus_fine", "torus_thick", "torus_high")  # bench/batch.py's four captures (fast preset)
 
 
 def prepare(out: Path) -> None:
@@ -38,6 +42,20 @@ def prepare(out: Path) -> None:
     n = len(list_images(full / "images"))
     held = dtu_heldout(n)
     subset_workspace(full, out / "dtu", [i for i in range(n) if i not in held])
+    prepare_batch(out)
+
+
+def prepare_batch(out: Path) -> None:
+    """bench/batch.py's four captures from their photos through cameras, masks and depth (fast preset): the GPU's
+    train seconds per capture give that bench's rows with GPUs (``bench/batch.py --gpu-train S``)."""
+    from bench.batch import VARIANTS, make_captures
+    from bench.evaluate import config, stages
+
+    captures = make_captures(out / "batch_photos")
+    for name in VARIANTS:
+        stages(("cameras", "masks", "depth"), out / name, config("fast"), images=captures / name)
+        shutil.rmtree(out / name / "sfm")  # COLMAP's database and model: training reads cameras.npz (23 MB less)
+    shutil.rmtree(captures)
 
 
 def train(out: Path, runs: list[str]) -> None:
@@ -48,8 +66,8 @@ def train(out: Path, runs: list[str]) -> None:
 
     rec = {"device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu", "runs": []}
     for name, preset in (r.split(":") for r in runs):
-        if name not in SCENES:
-            sys.exit(f"{name}: not a scene of this bench ({', '.join(SCENES)})")
+        if name not in SCENES + BATCH:
+            sys.exit(f"{name}: not a scene of this bench ({', '.join(SCENES + BATCH)})")
         ws = out / "runs" / f"{name}_{preset}"
         shutil.rmtree(ws, ignore_errors=True)
         shutil.copytree(out / name, ws)
@@ -68,7 +86,12 @@ def evaluate(out: Path) -> None:
 
     rec = json.loads((out / "gpu.json").read_text())
     for run in rec["runs"]:
+        if run["scene"] in BATCH:  # their train seconds are what bench/batch.py --gpu-train takes
+            continue
         ws = out / "runs" / f"{run['scene']}_{run['preset']}"
+        if not (ws / "model" / "final.pt").exists():
+            print(f"{ws}: no trained model came back from the GPU machine; not evaluated")
+            continue
         shutil.copytree(out / run["scene"], ws, dirs_exist_ok=True)  # only the model came back from the GPU
         stages(("mesh", "texture"), ws, config(run["preset"]))
         tm, tex = textured(ws)
@@ -86,6 +109,41 @@ def evaluate(out: Path) -> None:
         print(f"{run['scene']} {run['preset']}: train {run['train_seconds']:.1f} s on {rec['device']}, "
               f"held-out PSNR {run['psnr']:.2f} dB")
     (out / "gpu.json").write_text(json.dumps(rec, indent=1))
+
+
+def share(out: Path, at_once: list[int]) -> None:
+    """Train bench/batch.py's captures (fast preset) ``n`` at a time on one GPU, each in its own process with one
+    torch thread, as a batch with ``--batch.train-gpus 1/n`` runs them: wall seconds and captures per hour of the
+    GPU for each ``n`` in ``at_once`` (``n`` trainings: the four captures, repeated where ``n`` > 4)."""
+    import os
+    import subprocess
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    rows = []
+    for n in at_once:
+        names = [BATCH[i % len(BATCH)] for i in range(max(n, len(BATCH)))]
+
+        def one(k: int, name: str, n: int = n) -> float:
+            d = out / "share" / f"{n}_{k}"
+            shutil.rmtree(d, ignore_errors=True)
+            d.mkdir(parents=True)
+            (d / name).symlink_to((out / name).resolve())
+            subprocess.run([sys.executable, __file__, "train", str(d), f"{name}:fast"], env=env, check=True,
+                           capture_output=True)
+            return json.loads((d / "gpu.json").read_text())["runs"][0]["train_seconds"]
+
+        t0 = time.perf_counter()
+        with ThreadPoolExecutor(n) as pool:
+            secs = list(pool.map(one, range(len(names)), names))
+        wall = time.perf_counter() - t0
+        rows.append({"at_once": n, "trainings": len(names), "wall_s": round(wall, 1),
+                     "train_s_each": round(sum(secs) / len(secs), 1),
+                     "captures_per_hour": round(3600 * len(names) / wall, 1)})
+        print(f"{n} at once: {len(names)} trainings in {wall:.1f} s (each {rows[-1]['train_s_each']} s), "
+              f"{rows[-1]['captures_per_hour']} captures/hour on one GPU", flush=True)
+        (out / "share.json").write_text(json.dumps(rows, indent=1))  # after each n: a run cut short keeps its rows
 
 
 def profile(out: Path, steps: int = 20) -> None:
@@ -129,9 +187,10 @@ def profile(out: Path, steps: int = 20) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 3 or sys.argv[1] not in ("prepare", "train", "evaluate", "profile"):
+    if len(sys.argv) < 3 or sys.argv[1] not in ("prepare", "train", "evaluate", "profile", "share"):
         sys.exit(__doc__)
     step, folder = sys.argv[1], Path(sys.argv[2])
     default_runs = ["cow:default", "cow:quality", "dtu:default"]
     {"prepare": lambda: prepare(folder), "train": lambda: train(folder, sys.argv[3:] or default_runs),
-     "evaluate": lambda: evaluate(folder), "profile": lambda: profile(folder)}[step]()
+     "evaluate": lambda: evaluate(folder), "profile": lambda: profile(folder),
+     "share": lambda: share(folder, [int(n) for n in sys.argv[3:]] or [1, 4, 8])}[step]()
