@@ -6,9 +6,10 @@ Every sub-folder of CAPTURES is one capture: its photos (directly in it, or in `
 calls, so a batch run and a single run write the same files). A capture's stages form a chain (each task waits
 for the one before); the chains of different captures overlap. Resources: every stage asks for
 ``cpus_per_stage`` cores (its torch threads); training also asks for ``train_gpus`` GPUs when the cluster has
-any. A stage's own error (a one-line StageError) ends its capture's chain and is reported; the others go on. A
-worker that dies (killed process, lost node) has its stage retried ``retries`` times. Re-running the batch skips
-the captures that are done (every stage up to date) and, inside the others, the stages that are.
+any, and a task given none sees none. A stage's own error (a one-line StageError) ends its capture's chain and is
+reported; the others go on. A worker that dies (killed process, lost node) has its stage retried ``retries``
+times. Re-running the batch skips the captures that are done (every stage up to date) and, inside the others, the
+stages that are.
 
 Without ``--address`` Ray starts a local cluster on this machine; with one (``ray start --head`` prints it, or
 ``auto``) the same command runs on that cluster. Writes ``OUT/summary.json`` and ``OUT/index.html``
@@ -18,6 +19,7 @@ Without ``--address`` Ray starts a local cluster on this machine; with one (``ra
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 import time
 import traceback
@@ -39,7 +41,8 @@ class BatchConfig:
     """CPU cores each stage task asks for (and its torch threads): on 2 cores, two stages of different captures
     run at once."""
     train_gpus: float = 1.0
-    """GPUs the train stage asks for when the cluster has any (its device is then CUDA); 0: train on CPU cores."""
+    """GPUs the train stage asks for when the cluster has any (its device is then CUDA); a fraction lets that many
+    trainings share one GPU (0.125: eight); 0: train on CPU cores. Other stages never see the GPUs."""
     retries: int = 2
     """Retries of a stage whose worker died (killed, out of memory, node lost); a stage's own error is final."""
 
@@ -86,10 +89,16 @@ def capture_done(cap: Capture, config) -> bool:
         return False
 
 
-def run_stage_task(capture: Capture, stage_name: str, config, threads: int, upstream: dict | None) -> dict:
+def run_stage_task(capture: Capture, stage_name: str, config, threads: int, upstream: dict | None,
+                   gpu: bool = False) -> dict:
     """One stage of one capture, in a Ray worker: its output goes to ``<workspace>/logs/<stage>.log``; returns a
-    record (capture, stage, status ok/failed/skipped, ran, seconds, error)."""
-    rec = {"capture": capture.name, "stage": stage_name, "status": "skipped", "ran": False, "seconds": 0.0}
+    record (capture, stage, gpu, status ok/failed/skipped, ran, seconds, error). ``gpu``: the task was given a GPU;
+    without one the worker's GPUs are hidden from the stage (Ray leaves them visible to a task that asked for none,
+    and ``device: auto`` would train on them, outside Ray's count)."""
+    if not gpu:
+        os.environ["CUDA_VISIBLE_DEVICES"] = ""  # before torch first looks: the task's worker never ran a GPU task
+    rec = {"capture": capture.name, "stage": stage_name, "gpu": gpu, "status": "skipped", "ran": False,
+           "seconds": 0.0}
     if upstream is not None and upstream["status"] != "ok":
         return rec  # an earlier stage of this capture failed
     import torch
@@ -186,14 +195,18 @@ def run_batch(captures: Path, out: Path, config=None, batch: BatchConfig | None 
     if todo:
         ray = _start_ray(batch.address)
         try:
-            task = ray.remote(run_stage_task)
+            # a GPU task's worker ends with it (max_calls=1, as Ray's own default for functions declared with GPUs):
+            # the GPU memory torch's allocator holds goes with it, and no later task inherits its CUDA context
+            cpu_task, gpu_task = ray.remote(run_stage_task), ray.remote(max_calls=1)(run_stage_task)
             has_gpu = ray.cluster_resources().get("GPU", 0) > 0
             pending = {}
             for cap in todo:
                 upstream = None
                 for stage in STAGES:
-                    upstream = task.options(**_task_options(stage, batch, has_gpu)).remote(
-                        cap, stage.name, config, batch.cpus_per_stage, upstream)
+                    opts = _task_options(stage, batch, has_gpu)
+                    on_gpu = "num_gpus" in opts
+                    upstream = (gpu_task if on_gpu else cpu_task).options(**opts).remote(
+                        cap, stage.name, config, batch.cpus_per_stage, upstream, on_gpu)
                     pending[upstream] = (cap, stage.name)
             _collect(ray, pending, records, len(pending))
         finally:

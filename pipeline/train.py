@@ -57,5 +57,5 @@ def run(job: Job) -> Done | None:
     print(f"train: {trainer.step} steps in {trainer.elapsed:.1f} s (setup {trainer.setup_seconds:.1f} s) → "
           f"{ws.model / 'final.pt'}")
     return Done({"wall": round(time.perf_counter() - t0, 3), "setup": round(trainer.setup_seconds, 3),
-                 "skipped": trainer.skipped}, seconds=trainer.elapsed)
+                 "skipped": trainer.skipped, "device": trainer.device.type}, seconds=trainer.elapsed)
 

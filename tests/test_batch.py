@@ -2,6 +2,7 @@
 work."""
 
 import json
+import os
 import shutil
 
 import pytest
@@ -91,6 +92,21 @@ def test_task_resources_and_retries():
     assert "num_gpus" not in _task_options(train, BatchConfig(train_gpus=0), has_gpu=True)
 
 
+def test_a_task_without_a_gpu_hides_the_workers_gpus(small_ws, tmp_path, monkeypatch):
+    """Ray leaves a task that asked for no GPU seeing the node's GPUs, and ``device: auto`` would train on them
+    outside Ray's count (a batch with ``--batch.train-gpus 0`` on a GPU node trained on the GPU): a task without
+    one hides them before its stage runs; a task given one keeps what Ray set."""
+    from pipeline.batch import run_stage_task
+
+    cap = Capture("good", small_ws / "images", tmp_path / "ws")
+    failed_upstream = {"status": "failed"}  # the stage itself is skipped: only the worker's environment matters
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0")
+    rec = run_stage_task(cap, "train", None, 1, failed_upstream, gpu=True)
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "0" and rec["gpu"] is True and rec["status"] == "skipped"
+    rec = run_stage_task(cap, "mesh", None, 1, failed_upstream, gpu=False)
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "" and rec["gpu"] is False
+
+
 def _stage_worker_pids() -> list[int]:
     """PIDs of the Ray workers running a stage task (their process title names the task)."""
     from pathlib import Path
@@ -107,7 +123,6 @@ def _stage_worker_pids() -> list[int]:
 
 def test_a_killed_worker_s_stage_is_retried(small_ws, tmp_path):
     """SIGKILL the worker while it trains (no train stamp yet): Ray runs the stage again and the capture ends done."""
-    import os
     import signal
     import threading
     import time
