@@ -72,19 +72,30 @@ def stage_seconds(ws: Path) -> dict[str, float]:
 
 
 def scaling(per_capture: dict[str, float], gpu_train: float | None) -> list[dict]:
-    """Captures per hour for N CPU workers (cores, one stage each) and M GPUs (training), from the seconds per stage
-    of one capture on one core; the slower pool bounds the rate."""
-    cpu_other = sum(v for k, v in per_capture.items() if k != "train")
+    """Captures per hour for N CPU workers (cores, one stage each) and M GPUs, from the seconds per stage of one
+    capture on one core. ``captures_per_hour``: training on the GPUs while they keep up and on the cores beyond
+    (the batch's ``spill_to_cpu``), the best split of the captures; ``gpu_only``: every training on the GPUs, the
+    slower pool bounding the rate."""
+    train, cpu_other = per_capture["train"], sum(v for k, v in per_capture.items() if k != "train")
     rows = []
     for n_cpu, n_gpu in [(2, 0), (8, 0), (32, 0), (8, 1), (32, 1), (32, 4)]:
         if n_gpu and gpu_train is None:
             continue
-        cpu_work = cpu_other + (per_capture["train"] if not n_gpu else 0.0)
-        rate = 3600 * n_cpu / cpu_work
-        if n_gpu:
-            rate = min(rate, 3600 * n_gpu / gpu_train)
-        rows.append({"cpu_workers": n_cpu, "gpus": n_gpu, "captures_per_hour": round(rate, 1)})
+        if not n_gpu:
+            rate = 3600 * n_cpu / (cpu_other + train)
+            rows.append({"cpu_workers": n_cpu, "gpus": 0, "captures_per_hour": round(rate, 1)})
+            continue
+        gpu_only = min(3600 * n_cpu / cpu_other, 3600 * n_gpu / gpu_train)
+        # a share g of the trainings on the GPUs: R·g·gpu_train ≤ 3600·M and R·(other + (1 − g)·train) ≤ 3600·N
+        split = min(3600 * n_cpu / cpu_other, 3600 * (n_cpu + n_gpu * train / gpu_train) / (cpu_other + train))
+        rows.append({"cpu_workers": n_cpu, "gpus": n_gpu, "captures_per_hour": round(max(split, gpu_only), 1),
+                     "gpu_only": round(gpu_only, 1)})
     return rows
+
+
+def _scaling_line(r: dict) -> str:
+    gpu_only = f" (every training on the GPUs: {r['gpu_only']})" if "gpu_only" in r else ""
+    return f"  {r['cpu_workers']} CPU workers + {r['gpus']} GPU: {r['captures_per_hour']} captures/hour{gpu_only}"
 
 
 def main() -> None:
@@ -96,7 +107,7 @@ def main() -> None:
     if args.rows_from is not None:
         per_capture = json.loads(args.rows_from.read_text())["per_capture_stage_seconds_1core"]
         for r in scaling(per_capture, args.gpu_train):
-            print(f"  {r['cpu_workers']} CPU workers + {r['gpus']} GPU: {r['captures_per_hour']} captures/hour")
+            print(_scaling_line(r))
         return
     work = RUNS / "batch"
     captures = make_captures(work / "captures")
@@ -131,7 +142,7 @@ def main() -> None:
           f"({summary['done']}/{summary['captures']} done)")
     print("seconds per stage of a capture (batch, one core per stage):", per_capture)
     for r in rec["scaling"]:
-        print(f"  {r['cpu_workers']} CPU workers + {r['gpus']} GPU: {r['captures_per_hour']} captures/hour")
+        print(_scaling_line(r))
     print(f"→ {out}")
 
 

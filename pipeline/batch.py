@@ -43,6 +43,11 @@ class BatchConfig:
     train_gpus: float = 1.0
     """GPUs the train stage asks for when the cluster has any (its device is then CUDA); a fraction lets that many
     trainings share one GPU (0.125: eight); 0: train on CPU cores. Other stages never see the GPUs."""
+    spill_to_cpu: bool = True
+    """When the GPUs already have a training running and one waiting per slot (1 / ``train_gpus`` slots a GPU), a
+    capture ready to train trains on its CPU cores instead of queueing: at the fast preset an H100 trains a capture
+    no faster than one core, so a node's cores would otherwise wait on its GPU. False: every training waits for a
+    GPU."""
     retries: int = 2
     """Retries of a stage whose worker died (killed, out of memory, node lost); a stage's own error is final."""
 
@@ -129,12 +134,22 @@ def _one_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def _task_options(stage, batch: BatchConfig, has_gpu: bool) -> dict:
-    """Ray resources of one stage task: CPU cores, a GPU for training where the cluster has one, retries."""
+def _task_options(stage, batch: BatchConfig, on_gpu: bool) -> dict:
+    """Ray resources of one stage task: CPU cores, ``train_gpus`` GPUs for a training placed on one, retries."""
     opts = {"num_cpus": batch.cpus_per_stage, "max_retries": batch.retries}
-    if stage.name == "train" and has_gpu and batch.train_gpus > 0:
+    if stage.name == "train" and on_gpu:
         opts["num_gpus"] = batch.train_gpus
     return opts
+
+
+def train_on_gpu(batch: BatchConfig, cluster_gpus: float, gpu_trainings: int) -> bool:
+    """Whether a capture ready to train now goes to a GPU, with ``gpu_trainings`` trainings already running or
+    waiting on the cluster's ``cluster_gpus`` GPUs: never without GPUs or with ``train_gpus`` 0; with
+    ``spill_to_cpu`` only while fewer than two per GPU slot are there (one running, one waiting keeps them busy)."""
+    if cluster_gpus <= 0 or batch.train_gpus <= 0:
+        return False
+    slots = max(1, int(cluster_gpus / batch.train_gpus + 1e-9))
+    return not batch.spill_to_cpu or gpu_trainings < 2 * slots
 
 
 def _start_ray(address: str | None):
@@ -153,15 +168,56 @@ def _progress_line(rec: dict, done: int, total: int) -> str:
     return f"[{done}/{total}] {rec['capture']}: {rec['stage']} {what} ({rec['seconds']:.1f} s)"
 
 
-def _collect(ray, pending: dict, records: dict, total: int) -> None:
+class _Chains:
+    """Each capture's stage tasks, chained: the stages before training at once, training and the rest once the stage
+    before it has ended, on a GPU or on CPU cores as :func:`train_on_gpu` decides then. ``pending`` maps each
+    submitted task to its (capture, stage)."""
+
+    def __init__(self, ray, config, batch: BatchConfig):
+        # a GPU task's worker ends with it (max_calls=1, as Ray's own default for functions declared with GPUs): the
+        # GPU memory torch's allocator holds goes with it, and no later task inherits its CUDA context
+        self.cpu_task, self.gpu_task = ray.remote(run_stage_task), ray.remote(max_calls=1)(run_stage_task)
+        self.gpus = ray.cluster_resources().get("GPU", 0)
+        self.config, self.batch = config, batch
+        self.pending: dict = {}
+        self.before_train: dict = {}  # the task of the stage before training → its capture
+        self.on_gpu: set = set()  # training tasks placed on a GPU, not yet ended
+        self.split = [s.name for s in STAGES].index("train")
+
+    def _submit(self, cap: Capture, stages, upstream, gpu: bool):
+        for stage in stages:
+            on_gpu = gpu and stage.name == "train"
+            task = self.gpu_task if on_gpu else self.cpu_task
+            upstream = task.options(**_task_options(stage, self.batch, on_gpu)).remote(
+                cap, stage.name, self.config, self.batch.cpus_per_stage, upstream, on_gpu)
+            self.pending[upstream] = (cap, stage.name)
+            if on_gpu:
+                self.on_gpu.add(upstream)
+        return upstream
+
+    def start(self, cap: Capture) -> None:
+        self.before_train[self._submit(cap, STAGES[: self.split], None, False)] = cap
+
+    def ended(self, ref) -> None:
+        """Task ``ref`` has ended: a GPU slot may be free; after the stage before training, submit the rest."""
+        self.on_gpu.discard(ref)
+        cap = self.before_train.pop(ref, None)
+        if cap is not None:
+            gpu = train_on_gpu(self.batch, self.gpus, len(self.on_gpu))
+            self._submit(cap, STAGES[self.split :], ref, gpu)
+
+
+def _collect(ray, chains: _Chains, records: dict, total: int) -> None:
     """Wait for the stage tasks, one progress line per finished stage and an overall bar (stderr)."""
     from tqdm import tqdm
 
     bar = tqdm(total=total, unit="stage", file=sys.stderr, dynamic_ncols=True)
     failed: set[str] = set()
+    pending = chains.pending
     while pending:
         (ref,), _ = ray.wait(list(pending), num_returns=1)
         cap, stage_name = pending.pop(ref)
+        chains.ended(ref)
         try:
             rec = ray.get(ref)
         except Exception as exc:  # noqa: BLE001 - the worker died more often than retried, or upstream did
@@ -195,20 +251,10 @@ def run_batch(captures: Path, out: Path, config=None, batch: BatchConfig | None 
     if todo:
         ray = _start_ray(batch.address)
         try:
-            # a GPU task's worker ends with it (max_calls=1, as Ray's own default for functions declared with GPUs):
-            # the GPU memory torch's allocator holds goes with it, and no later task inherits its CUDA context
-            cpu_task, gpu_task = ray.remote(run_stage_task), ray.remote(max_calls=1)(run_stage_task)
-            has_gpu = ray.cluster_resources().get("GPU", 0) > 0
-            pending = {}
+            chains = _Chains(ray, config, batch)
             for cap in todo:
-                upstream = None
-                for stage in STAGES:
-                    opts = _task_options(stage, batch, has_gpu)
-                    on_gpu = "num_gpus" in opts
-                    upstream = (gpu_task if on_gpu else cpu_task).options(**opts).remote(
-                        cap, stage.name, config, batch.cpus_per_stage, upstream, on_gpu)
-                    pending[upstream] = (cap, stage.name)
-            _collect(ray, pending, records, len(pending))
+                chains.start(cap)
+            _collect(ray, chains, records, len(todo) * len(STAGES))
         finally:
             ray.shutdown()
     return write_summary(out, caps, records, time.perf_counter() - t0)

@@ -49,6 +49,8 @@ def capture_row(out: Path, cap, records: list[dict]) -> dict:
         "registered": registered, "total": _photo_count(cap.photos),
         "seconds": {s.name: seconds[s.name] for s in STAGES if s.name in seconds},
         "ran": [r["stage"] for r in records if r.get("ran")],
+        "train_gpu": next((r.get("gpu", False) for r in records if r["stage"] == "train" and r.get("ran")), None),
+        "train_device": (ws.stamp("train") or {}).get("device"),
         "mask_confidence": (ws.stamp("masks") or {}).get("mean_confidence"),
         "psnr": report.get("psnr"), "psnr_views": report.get("psnr_views"),
         "glb": str(glb.relative_to(out)) if glb.exists() and status != "failed" else None,

@@ -50,13 +50,25 @@ def test_capture_sources_follow_the_stage_table():
     assert by_stage["masks"] == {"masks_dir": "/m"} and by_stage["train"] == {}
 
 
-def test_batch_good_and_bad_capture_then_nothing_to_do(small_ws, tmp_path, capsys):
+def test_batch_good_and_bad_capture_then_nothing_to_do(small_ws, tmp_path, capsys, monkeypatch):
+    import logging
+
+    import ray
+
+    import pipeline.batch as batch_module
     from pipeline.config import config_from_args
 
+    def with_a_gpu(address):  # the local cluster declares one GPU (none is here: the stage's device stays CPU)
+        ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
+                 object_store_memory=256 * 1024**2)
+        return ray
+
+    monkeypatch.setattr(batch_module, "_start_ray", with_a_gpu)
     captures, out = _captures(small_ws, tmp_path), tmp_path / "out"
     cfg = config_from_args(None, TINY)
     summary = run_batch(captures, out, cfg, BatchConfig(cpus_per_stage=1))
     rows = {r["capture"]: r for r in summary["rows"]}
+    assert rows["good"]["train_gpu"] is True and rows["good"]["train_device"] == "cpu"  # Ray gave training the GPU
     assert (out / "good" / "mesh" / "textured.glb").exists() and rows["good"]["status"] == "done"
     assert rows["good"]["registered"] == rows["good"]["total"] == 8 and rows["good"]["psnr"] > 10
     assert set(rows["good"]["seconds"]) == {s.name for s in STAGES}
@@ -86,10 +98,24 @@ def test_task_resources_and_retries():
     train = next(s for s in STAGES if s.name == "train")
     masks = next(s for s in STAGES if s.name == "masks")
     batch = BatchConfig(cpus_per_stage=2, train_gpus=1.0, retries=3)
-    assert _task_options(masks, batch, has_gpu=True) == {"num_cpus": 2, "max_retries": 3}
-    assert _task_options(train, batch, has_gpu=True) == {"num_cpus": 2, "max_retries": 3, "num_gpus": 1.0}
-    assert "num_gpus" not in _task_options(train, batch, has_gpu=False)
-    assert "num_gpus" not in _task_options(train, BatchConfig(train_gpus=0), has_gpu=True)
+    assert _task_options(masks, batch, on_gpu=True) == {"num_cpus": 2, "max_retries": 3}
+    assert _task_options(train, batch, on_gpu=True) == {"num_cpus": 2, "max_retries": 3, "num_gpus": 1.0}
+    assert "num_gpus" not in _task_options(train, batch, on_gpu=False)
+
+
+def test_training_spills_to_cpu_cores_only_when_the_gpus_are_full():
+    """One training running and one waiting per GPU slot keep the GPUs busy; a capture ready to train beyond that
+    trains on its cores (an H100 trains a fast-preset capture no faster than one core)."""
+    from pipeline.batch import train_on_gpu
+
+    one = BatchConfig(train_gpus=1.0)
+    assert not train_on_gpu(one, cluster_gpus=0, gpu_trainings=0)  # no GPU in the cluster
+    assert not train_on_gpu(BatchConfig(train_gpus=0), cluster_gpus=1, gpu_trainings=0)  # training kept on CPU
+    assert [train_on_gpu(one, 1, n) for n in range(4)] == [True, True, False, False]
+    assert [train_on_gpu(one, 2, n) for n in (3, 4)] == [True, False]
+    eighth = BatchConfig(train_gpus=0.125)  # eight trainings share a GPU: 8 slots, 16 before spilling
+    assert [train_on_gpu(eighth, 1, n) for n in (15, 16)] == [True, False]
+    assert train_on_gpu(BatchConfig(train_gpus=1.0, spill_to_cpu=False), 1, 10)  # every training waits for a GPU
 
 
 def test_a_task_without_a_gpu_hides_the_workers_gpus(small_ws, tmp_path, monkeypatch):
