@@ -46,7 +46,7 @@ class BatchConfig:
     spill_to_cpu: bool = True
     """When the GPUs already have a training running and one waiting per slot (1 / ``train_gpus`` slots a GPU), a
     capture ready to train trains on its CPU cores instead of queueing: at the fast preset an H100 trains a capture
-    no faster than one core, so a node's cores would otherwise wait on its GPU. False: every training waits for a
+    hardly faster than one core, so a node's cores would otherwise wait on its GPU. False: every training waits for a
     GPU."""
     retries: int = 2
     """Retries of a stage whose worker died (killed, out of memory, node lost); a stage's own error is final."""
