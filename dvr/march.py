@@ -72,17 +72,17 @@ def secant(
     n_iter: int,
     level: float = 0.0,
 ) -> torch.Tensor:
-    """Refine roots bracketed by f_lo < level ≤ f_hi with the Illinois variant of the secant method.
+    """Refine roots bracketed by f_lo < level ≤ f_hi with the Illinois variant of the secant method: ``n_iter``
+    field evaluations, each narrowing the bracket; the root returned is the secant of the last bracket (so the last
+    evaluation counts too; ``n_iter`` 0: the secant of the given bracket).
 
     The bracket is kept, so the result never leaves [d_lo, d_hi]; f_hi − f_lo > 0 always (no division by 0).
     """
     f_lo = f_lo - level
     f_hi = f_hi - level
     side = torch.zeros_like(d_lo, dtype=torch.int8)
-    d = d_lo - f_lo * (d_hi - d_lo) / (f_hi - f_lo)
     for _ in range(n_iter):
-        d = d_lo - f_lo * (d_hi - d_lo) / (f_hi - f_lo)
-        d = torch.minimum(torch.maximum(d, d_lo), d_hi)
+        d = _secant_root(d_lo, d_hi, f_lo, f_hi)
         f = logit_fn(origins + d[:, None] * dirs).to(d.dtype) - level
         occ = f >= 0
         # Illinois: when the same end is kept twice, halve its value so the other end moves too
@@ -95,7 +95,13 @@ def secant(
         d_lo = torch.where(occ, d_lo, d)
         f_lo = torch.where(occ, f_lo, f)
         side = torch.where(occ, torch.ones_like(side), -torch.ones_like(side))
-    return d
+    return _secant_root(d_lo, d_hi, f_lo, f_hi)
+
+
+def _secant_root(d_lo: torch.Tensor, d_hi: torch.Tensor, f_lo: torch.Tensor, f_hi: torch.Tensor) -> torch.Tensor:
+    """Where the line through (d_lo, f_lo) and (d_hi, f_hi) crosses 0, kept inside [d_lo, d_hi]."""
+    d = d_lo - f_lo * (d_hi - d_lo) / (f_hi - f_lo)
+    return torch.minimum(torch.maximum(d, d_lo), d_hi)
 
 
 @torch.no_grad()
@@ -131,10 +137,8 @@ def find_surface(
     hit = (m.status == HIT).nonzero().view(-1)
     if hit.numel() > 0:
         lo_d, hi_d, lo_f, hi_f = m.lo_d[hit], m.hi_d[hit], m.lo_f[hit], m.hi_f[hit]
-        d = secant(
-            logit_fn, origins[hit], dirs[hit], lo_d, hi_d, lo_f + level, hi_f + level, n_secant, level,
-        ) if n_secant > 0 else lo_d - lo_f * (hi_d - lo_d) / (hi_f - lo_f)
-        m.depth[hit] = d
+        m.depth[hit] = secant(logit_fn, origins[hit], dirs[hit], lo_d, hi_d, lo_f + level, hi_f + level, n_secant,
+                              level)
     return SurfaceResult(m.depth, m.status, near, far, m.max_depth)
 
 
