@@ -10,8 +10,9 @@ workspaces on whatever device ``device: auto`` finds, then mesh, texture and hel
     python bench/gpu.py share DIR N...         # on the GPU machine: the batch's captures trained N at a time on the
                                                # one GPU, one torch thread each (Ray's --batch.train-gpus 1/N)
 
-The GPU machine needs torch, numpy, scipy, scikit-image, opencv, tyro, trimesh and PyYAML (no pycolmap, pymeshlab,
-xatlas: the stages that need them run in the evaluate step).
+The GPU machine needs torch, numpy, scipy, scikit-image, opencv, tyro, trimesh, kornia and PyYAML (no pycolmap,
+pymeshlab, xatlas: the stages that need them run in the evaluate step); bench/gpu_check.sh installs the ones its
+image lacks from wheels carried with the call.
 """
 
 from __future__ import annotations
