@@ -76,11 +76,13 @@ def hull_inside(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: 
                 ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
                 contact_band: float = 0.0) -> np.ndarray:
     """(res+1)³ bool lattice [x, y, z] over [-1, 1]³: inside the visual hull (:func:`outside_hull`) and the unit
-    sphere."""
+    sphere. Only the lattice points inside the sphere are projected (about half of them)."""
     pts = grid_points(res, device=masks.device)
-    free = outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes, contact_band=contact_band) \
-        | (pts.norm(dim=-1) > 1.0)
-    return (~free).view(res + 1, res + 1, res + 1).cpu().numpy()
+    in_sphere = pts.norm(dim=-1) <= 1.0
+    inside = torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device)
+    inside[in_sphere] = ~outside_hull(pts[in_sphere], P, masks, min_views, ground=ground, sizes=sizes,
+                                      contact_band=contact_band)
+    return inside.view(res + 1, res + 1, res + 1).cpu().numpy()
 
 
 def inside_logits(inside: np.ndarray, slope_cells: float = 1.0, clamp: float = 10.0,

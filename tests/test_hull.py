@@ -6,7 +6,7 @@ import torch
 import trimesh
 
 from dvr.data import load_scene
-from dvr.hull import hull_bounding_sphere, hull_logits, outside_hull
+from dvr.hull import grid_points, hull_bounding_sphere, hull_inside, hull_logits, outside_hull
 
 
 def test_bounding_sphere_contains_the_object_and_is_tight(small_ws):
@@ -35,6 +35,20 @@ def test_outside_hull_and_logits(small_ws):
         outside_hull(pts[:, :2], data.P, data.masks)
     with pytest.raises(ValueError, match="P must be"):
         outside_hull(pts, data.P[:, :2], data.masks)
+
+
+@pytest.mark.parametrize("full", [False, True])
+def test_hull_lattice_projects_only_the_sphere_and_equals_the_whole_lattice_test(small_ws, full):
+    """hull_inside tests only the lattice points inside the unit sphere (about half of them: the masks stage builds
+    three 128³ hulls); the lattice equals the plain test of every point (the reference), with masks that make
+    the sphere's inside all hull too (full masks: the whole ball, nothing outside it)."""
+    data = load_scene(small_ws, torch.device("cpu"))
+    masks = torch.ones_like(data.masks) if full else data.masks
+    pts = grid_points(24)
+    reference = (~(outside_hull(pts, data.P, masks) | (pts.norm(dim=-1) > 1.0))).view(25, 25, 25).numpy()
+    got = hull_inside(data.P, masks, res=24)
+    assert got.dtype == bool and np.array_equal(got, reference) and got.any()
+    assert got.sum() == (pts.norm(dim=-1) <= 1.0).sum() if full else got.sum() < reference.size // 4
 
 
 def test_carve_along_rays_frees_only_the_segment_in_front():
