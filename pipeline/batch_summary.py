@@ -78,7 +78,8 @@ def _cell(row: dict) -> str:
 
 
 def _html_row(out: Path, row: dict) -> str:
-    secs = " ".join(f"{k} {v:.0f}" for k, v in row["seconds"].items())
+    on = {"train": f" ({row['train_device']})"} if row.get("train_device") not in (None, "cpu") else {}
+    secs = " ".join(f"{k} {v:.0f}{on.get(k, '')}" for k, v in row["seconds"].items())
     thumb = _thumbnail(out / row["capture"])
     links = [f"<a href='{html.escape(row[k])}'>{k}</a>" for k in ("report", "glb", "logs") if row[k]]
     psnr = f"{row['psnr']:.2f} dB ({row['psnr_views']})" if row["psnr"] is not None else "–"

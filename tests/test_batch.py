@@ -177,3 +177,13 @@ def test_a_killed_worker_s_stage_is_retried(small_ws, tmp_path):
     assert killed, "the train stage was never caught running"
     row = result["rows"][0]
     assert row["status"] == "done" and (out / "good" / "mesh" / "textured.glb").exists()
+
+
+def test_summary_page_names_a_training_device_other_than_the_cpu(tmp_path):
+    from pipeline.batch_summary import _html_row
+
+    row = {"capture": "mug", "status": "done", "failed_stage": None, "error": None, "registered": 30, "total": 30,
+           "seconds": {"masks": 29.1, "train": 25.1, "mesh": 3.1}, "mask_confidence": 0.95, "psnr": 28.0,
+           "psnr_views": "held-out", "report": None, "glb": None, "logs": None, "train_device": "cuda"}
+    assert "masks 29 train 25 (cuda) mesh 3" in _html_row(tmp_path, row)
+    assert "train 25 mesh" in _html_row(tmp_path, {**row, "train_device": "cpu"})
