@@ -6,10 +6,10 @@ Every sub-folder of CAPTURES is one capture: its photos (directly in it, or in `
 calls, so a batch run and a single run write the same files). A capture's stages form a chain (each task waits
 for the one before); the chains of different captures overlap. Resources: every stage asks for
 ``cpus_per_stage`` cores (its torch threads); training also asks for ``train_gpus`` GPUs when the cluster has
-any, and a task given none sees none. A stage's own error (a one-line StageError) ends its capture's chain and is
-reported; the others go on. A worker that dies (killed process, lost node) has its stage retried ``retries``
-times. Re-running the batch skips the captures that are done (every stage up to date) and, inside the others, the
-stages that are.
+any, and a task given none sees none (unless its stage is set to cuda). A stage's own error (a one-line
+StageError) ends its capture's chain and is reported; the others go on. A worker that dies (killed process, lost
+node) has its stage retried ``retries`` times. Re-running the batch skips the captures that are done (every stage
+up to date) and, inside the others, the stages that are.
 
 Without ``--address`` Ray starts a local cluster on this machine; with one (``ray start --head`` prints it, or
 ``auto``) the same command runs on that cluster. Writes ``OUT/summary.json`` and ``OUT/index.html``
@@ -42,7 +42,7 @@ class BatchConfig:
     run at once."""
     train_gpus: float = 1.0
     """GPUs the train stage asks for when the cluster has any (its device is then CUDA); a fraction lets that many
-    trainings share one GPU (0.125: eight); 0: train on CPU cores. Other stages never see the GPUs."""
+    trainings share one GPU (0.125: eight); 0: train on CPU cores. Other stages see no GPU unless set to cuda."""
     spill_to_cpu: bool = True
     """When the GPUs already have a training running and one waiting per slot (1 / ``train_gpus`` slots a GPU), a
     capture ready to train trains on its CPU cores instead of queueing: at the fast preset an H100 trains a capture
@@ -98,9 +98,9 @@ def run_stage_task(capture: Capture, stage_name: str, config, threads: int, upst
                    gpu: bool = False) -> dict:
     """One stage of one capture, in a Ray worker: its output goes to ``<workspace>/logs/<stage>.log``; returns a
     record (capture, stage, gpu, status ok/failed/skipped, ran, seconds, error). ``gpu``: the task was given a GPU;
-    without one the worker's GPUs are hidden from the stage (Ray leaves them visible to a task that asked for none,
-    and ``device: auto`` would train on them, outside Ray's count)."""
-    if not gpu:
+    without one the worker's GPUs are hidden from a stage whose ``device`` is auto (Ray leaves them visible to a
+    task that asked for none, and ``auto`` would train on them, outside Ray's count)."""
+    if not gpu and _stage_device(config, stage_name) == "auto":  # an explicit cuda is the user's to keep
         os.environ["CUDA_VISIBLE_DEVICES"] = ""  # before torch first looks: the task's worker never ran a GPU task
     rec = {"capture": capture.name, "stage": stage_name, "gpu": gpu, "status": "skipped", "ran": False,
            "seconds": 0.0}
@@ -142,14 +142,23 @@ def _task_options(stage, batch: BatchConfig, on_gpu: bool) -> dict:
     return opts
 
 
-def train_on_gpu(batch: BatchConfig, cluster_gpus: float, gpu_trainings: int) -> bool:
+def train_on_gpu(batch: BatchConfig, cluster_gpus: float, gpu_trainings: int, device: str = "auto") -> bool:
     """Whether a capture ready to train now goes to a GPU, with ``gpu_trainings`` trainings already running or
-    waiting on the cluster's ``cluster_gpus`` GPUs: never without GPUs or with ``train_gpus`` 0; with
-    ``spill_to_cpu`` only while fewer than two per GPU slot are there (one running, one waiting keeps them busy)."""
-    if cluster_gpus <= 0 or batch.train_gpus <= 0:
+    waiting on the cluster's ``cluster_gpus`` GPUs: never without GPUs, with ``train_gpus`` 0 or with the train
+    ``device`` cpu; with ``spill_to_cpu`` (and ``device`` auto) only while fewer than two per GPU slot are there
+    (one running, one waiting keeps them busy)."""
+    if cluster_gpus <= 0 or batch.train_gpus <= 0 or device == "cpu":
         return False
     slots = max(1, int(cluster_gpus / batch.train_gpus + 1e-9))
-    return not batch.spill_to_cpu or gpu_trainings < 2 * slots
+    return not batch.spill_to_cpu or device == "cuda" or gpu_trainings < 2 * slots
+
+
+def _stage_device(config, stage_name: str) -> str | None:
+    """The ``device`` setting of a stage's config section (None for a stage without one)."""
+    from .config import Config
+
+    section = stage_named(stage_name).section
+    return getattr(getattr(config or Config(), section), "device", None) if section else None
 
 
 def _start_ray(address: str | None):
@@ -203,7 +212,7 @@ class _Chains:
         self.on_gpu.discard(ref)
         cap = self.before_train.pop(ref, None)
         if cap is not None:
-            gpu = train_on_gpu(self.batch, self.gpus, len(self.on_gpu))
+            gpu = train_on_gpu(self.batch, self.gpus, len(self.on_gpu), _stage_device(self.config, "train"))
             self._submit(cap, STAGES[self.split :], ref, gpu)
 
 

@@ -116,6 +116,8 @@ def test_training_spills_to_cpu_cores_only_when_the_gpus_are_full():
     eighth = BatchConfig(train_gpus=0.125)  # eight trainings share a GPU: 8 slots, 16 before spilling
     assert [train_on_gpu(eighth, 1, n) for n in (15, 16)] == [True, False]
     assert train_on_gpu(BatchConfig(train_gpus=1.0, spill_to_cpu=False), 1, 10)  # every training waits for a GPU
+    assert train_on_gpu(one, 1, 10, device="cuda")  # training set to CUDA waits for a GPU: on cores it would fail
+    assert not train_on_gpu(one, 1, 0, device="cpu")  # training set to the CPU takes no GPU slot
 
 
 def test_a_task_without_a_gpu_hides_the_workers_gpus(small_ws, tmp_path, monkeypatch):
@@ -123,6 +125,7 @@ def test_a_task_without_a_gpu_hides_the_workers_gpus(small_ws, tmp_path, monkeyp
     outside Ray's count (a batch with ``--batch.train-gpus 0`` on a GPU node trained on the GPU): a task without
     one hides them before its stage runs; a task given one keeps what Ray set."""
     from pipeline.batch import run_stage_task
+    from pipeline.config import config_from_args
 
     cap = Capture("good", small_ws / "images", tmp_path / "ws")
     failed_upstream = {"status": "failed"}  # the stage itself is skipped: only the worker's environment matters
@@ -131,6 +134,9 @@ def test_a_task_without_a_gpu_hides_the_workers_gpus(small_ws, tmp_path, monkeyp
     assert os.environ["CUDA_VISIBLE_DEVICES"] == "0" and rec["gpu"] is True and rec["status"] == "skipped"
     rec = run_stage_task(cap, "mesh", None, 1, failed_upstream, gpu=False)
     assert os.environ["CUDA_VISIBLE_DEVICES"] == "" and rec["gpu"] is False
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0")  # a stage set to cuda keeps the GPUs (the user's choice)
+    run_stage_task(cap, "texture", config_from_args(None, ["--texture.device", "cuda"]), 1, failed_upstream)
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "0"
 
 
 def _stage_worker_pids() -> list[int]:
