@@ -9,6 +9,8 @@ workspaces on whatever device ``device: auto`` finds, then mesh, texture and hel
     python bench/gpu.py profile DIR            # on the GPU machine: where a default training step's time goes
     python bench/gpu.py share DIR N...         # on the GPU machine: the batch's captures trained N at a time on the
                                                # one GPU, one torch thread each (Ray's --batch.train-gpus 1/N)
+    python bench/gpu.py graph DIR              # on the GPU machine: a step's surface finding as today, with fixed
+                                               # shapes and no waits, and that replayed as one CUDA graph
 
 The GPU machine needs torch, numpy, scipy, scikit-image, opencv, tyro, trimesh, kornia and PyYAML (no pycolmap,
 pymeshlab, xatlas: the stages that need them run in the evaluate step); bench/gpu_check.sh installs the ones its
@@ -147,6 +149,97 @@ def share(out: Path, at_once: list[int]) -> None:
         (out / "share.json").write_text(json.dumps(rows, indent=1))  # after each n: a run cut short keeps its rows
 
 
+def find_surface_static(logit_fn, origins, dirs, n_steps: int, n_secant: int, level: float = 0.0):
+    """:func:`dvr.march.find_surface` (no jitter) with fixed shapes and no wait for the device, so that a CUDA graph
+    can hold it: every sample of every ray in one block (as the trainer's batches are evaluated already), the secant
+    on every ray (a harmless bracket where there is no crossing) and the statuses chosen with ``where``, not by
+    indexing. Same result where ``find_surface`` evaluates its rays in one block."""
+    import torch
+
+    from dvr.cameras import sphere_bounds
+    from dvr.march import HIT, INSIDE, MISS, SurfaceResult, sample_depths, secant
+
+    with torch.no_grad():
+        near, far, valid = sphere_bounds(origins, dirs)
+        depths = sample_depths(near, far, n_steps, False)
+        pts = origins[:, None, :] + depths[..., None] * dirs[:, None, :]
+        vals = logit_fn(pts.reshape(-1, 3)).to(origins.dtype).view(depths.shape) - level
+        barg = vals.argmax(dim=1)
+        max_depth = torch.where(valid, depths.gather(1, barg[:, None])[:, 0], 0.5 * (near + far))
+        inside = valid & (vals[:, 0] >= 0)
+        cross = (vals[:, :-1] < 0) & (vals[:, 1:] >= 0)
+        found = valid & cross.any(dim=1) & ~inside
+        k = cross.to(torch.int8).argmax(dim=1)[:, None]
+        lo_d, hi_d = depths.gather(1, k)[:, 0], depths.gather(1, k + 1)[:, 0]
+        lo_f = torch.where(found, vals.gather(1, k)[:, 0], torch.full_like(near, -1.0))
+        hi_f = torch.where(found, vals.gather(1, k + 1)[:, 0], torch.ones_like(near))
+        root = secant(logit_fn, origins, dirs, lo_d, hi_d, lo_f + level, hi_f + level, n_secant, level)
+        depth = torch.where(found, root, torch.where(inside, near, far))
+        code = torch.where(found, HIT, torch.where(inside, INSIDE, MISS)).to(torch.int8)
+        return SurfaceResult(depth, code, near, far, max_depth)
+
+
+def graph(out: Path, repeats: int = 50) -> None:
+    """The cow's default training field after 200 steps, one step's rays (default batch and samples): the surface
+    finding as the trainer runs it, the fixed-shape version, and that replayed as one CUDA graph (ms each, and
+    whether the three agree)."""
+    import time
+
+    import torch
+
+    from dvr.data import load_scene
+    from dvr.device import resolve_device
+    from dvr.march import find_surface
+    from dvr.trainer import Trainer
+    from pipeline.config import load_config
+
+    cfg = load_config(ROOT / "configs" / "default.yaml").train
+    cfg.progress = False
+    dev = resolve_device("auto")
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    t = Trainer(cfg, load_scene(out / "cow", dev), out / "graph")
+    for i in range(200):
+        t.train_step(i)
+    origins, dirs = t.sampler.sample(cfg.batch_rays)[:2]
+    n = t.n_steps_at(200)
+    occ = t.model.occupancy
+
+    def timed(fn) -> float:
+        for _ in range(3):
+            fn()
+        sync()
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            fn()
+        sync()
+        return (time.perf_counter() - t0) / repeats * 1e3
+
+    eager = find_surface(occ, origins, dirs, n_steps=n, n_secant=cfg.n_secant)
+    fixed = find_surface_static(occ, origins, dirs, n, cfg.n_secant)
+    rows = {"as trained": timed(lambda: find_surface(occ, origins, dirs, n_steps=n, n_secant=cfg.n_secant)),
+            "fixed shapes": timed(lambda: find_surface_static(occ, origins, dirs, n, cfg.n_secant))}
+    agree = {"fixed shapes": bool(torch.equal(eager.status, fixed.status)
+                                  and torch.allclose(eager.depth, fixed.depth, atol=1e-5))}
+    if dev.type == "cuda":
+        o_in, d_in = origins.clone(), dirs.clone()
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            for _ in range(3):
+                find_surface_static(occ, o_in, d_in, n, cfg.n_secant)
+        torch.cuda.current_stream().wait_stream(side)
+        g = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(g):
+            held = find_surface_static(occ, o_in, d_in, n, cfg.n_secant)
+        rows["one CUDA graph"] = timed(lambda: (o_in.copy_(origins), d_in.copy_(dirs), g.replay()))
+        agree["one CUDA graph"] = bool(torch.equal(eager.status, held.status)
+                                       and torch.allclose(eager.depth, held.depth, atol=1e-5))
+    for name, ms in rows.items():
+        print(f"surface finding, {name}: {ms:.2f} ms on {dev}" + (f" (agrees: {agree[name]})" if name in agree
+                                                                      else ""))
+    (out / "graph.json").write_text(json.dumps({"device": str(dev), "ms": rows, "agrees": agree}, indent=1))
+
+
 def profile(out: Path, steps: int = 20) -> None:
     """Time a default-preset training step on the cow and profile ``steps`` of them: host time, device time,
     kernel launches and waits for the device per step."""
@@ -188,10 +281,10 @@ def profile(out: Path, steps: int = 20) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 3 or sys.argv[1] not in ("prepare", "train", "evaluate", "profile", "share"):
+    if len(sys.argv) < 3 or sys.argv[1] not in ("prepare", "train", "evaluate", "profile", "share", "graph"):
         sys.exit(__doc__)
     step, folder = sys.argv[1], Path(sys.argv[2])
     default_runs = ["cow:default", "cow:quality", "dtu:default"]
     {"prepare": lambda: prepare(folder), "train": lambda: train(folder, sys.argv[3:] or default_runs),
-     "evaluate": lambda: evaluate(folder), "profile": lambda: profile(folder),
+     "evaluate": lambda: evaluate(folder), "profile": lambda: profile(folder), "graph": lambda: graph(folder),
      "share": lambda: share(folder, [int(n) for n in sys.argv[3:]] or [1, 4, 8])}[step]()

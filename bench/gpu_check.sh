@@ -14,6 +14,8 @@ python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_devic
 # the core ops on CUDA against CPU, and the field interface on both
 timeout 150 python3 -m pytest -q -p no:cacheprovider tests/test_device.py tests/test_fields.py 2>&1 | tee $OUT/tests.log \
   | tail -4
+# a step's surface finding as trained, with fixed shapes, and as one CUDA graph (not yet measured on a GPU)
+timeout 120 python3 bench/gpu.py graph gpuw 2>&1 | tail -4; cp gpuw/graph.json $OUT/ 2>/dev/null
 timeout 330 python3 bench/gpu.py train gpuw cow:default dtu:default torus_noise:fast torus_fine:fast torus_thick:fast \
   torus_high:fast cow:quality
 cp gpuw/gpu.json $OUT/ 2>/dev/null
