@@ -187,6 +187,10 @@ class _Chains:
         # GPU memory torch's allocator holds goes with it, and no later task inherits its CUDA context
         self.cpu_task, self.gpu_task = ray.remote(run_stage_task), ray.remote(max_calls=1)(run_stage_task)
         self.gpus = ray.cluster_resources().get("GPU", 0)
+        node_gpus = max((n["Resources"].get("GPU", 0) for n in ray.nodes() if n.get("Alive")), default=0)
+        if 0 < node_gpus < batch.train_gpus:  # Ray would wait forever for a node with that many
+            raise StageError(f"--batch.train-gpus {batch.train_gpus:g}: no node of the cluster has that many GPUs "
+                             f"(at most {node_gpus:g}); ask for at most {node_gpus:g}, or a fraction to share one")
         self.config, self.batch = config, batch
         self.pending: dict = {}
         self.before_train: dict = {}  # the task of the stage before training → its capture

@@ -193,3 +193,26 @@ def test_summary_page_names_a_training_device_other_than_the_cpu(tmp_path):
            "psnr_views": "held-out", "report": None, "glb": None, "logs": None, "train_device": "cuda"}
     assert "masks 29 train 25 (cuda) mesh 3" in _html_row(tmp_path, row)
     assert "train 25 mesh" in _html_row(tmp_path, {**row, "train_device": "cpu"})
+
+
+def test_more_gpus_per_training_than_any_node_has_is_a_one_line_error(small_ws, tmp_path, monkeypatch):
+    """Ray would wait forever for a node with that many GPUs: the batch says so before it submits anything."""
+    import logging
+
+    import ray
+
+    import pipeline.batch as batch_module
+    from pipeline.config import config_from_args
+
+    def with_a_gpu(address):
+        ray.init(num_cpus=1, num_gpus=1, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
+                 object_store_memory=128 * 1024**2)
+        return ray
+
+    monkeypatch.setattr(batch_module, "_start_ray", with_a_gpu)
+    captures = _captures(small_ws, tmp_path)
+    with pytest.raises(StageError, match=r"--batch.train-gpus 2: no node of the cluster has that many GPUs "
+                                         r"\(at most 1\)"):
+        run_batch(captures, tmp_path / "out", config_from_args(None, TINY), BatchConfig(train_gpus=2))
+    assert not ray.is_initialized()  # the cluster it started is shut down
+    assert not (tmp_path / "out" / "good" / ".stages").exists()  # nothing ran
