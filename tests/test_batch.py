@@ -50,20 +50,26 @@ def test_capture_sources_follow_the_stage_table():
     assert by_stage["masks"] == {"masks_dir": "/m"} and by_stage["train"] == {}
 
 
-def test_batch_good_and_bad_capture_then_nothing_to_do(small_ws, tmp_path, capsys, monkeypatch):
+def _local_ray_with_one_gpu(monkeypatch, cpus: int) -> None:
+    """The batch's local Ray cluster declares one GPU (Ray schedules it whether or not the machine has one)."""
     import logging
 
     import ray
 
     import pipeline.batch as batch_module
-    from pipeline.config import config_from_args
 
-    def with_a_gpu(address):  # the local cluster declares one GPU (none is here: the stage's device stays CPU)
-        ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
-                 object_store_memory=256 * 1024**2)
+    def start(address):
+        ray.init(num_cpus=cpus, num_gpus=1, include_dashboard=False, log_to_driver=False,
+                 logging_level=logging.WARNING, object_store_memory=128 * 1024**2)
         return ray
 
-    monkeypatch.setattr(batch_module, "_start_ray", with_a_gpu)
+    monkeypatch.setattr(batch_module, "_start_ray", start)
+
+
+def test_batch_good_and_bad_capture_then_nothing_to_do(small_ws, tmp_path, capsys, monkeypatch):
+    from pipeline.config import config_from_args
+
+    _local_ray_with_one_gpu(monkeypatch, cpus=2)  # none is here: the stage's device stays the CPU
     captures, out = _captures(small_ws, tmp_path), tmp_path / "out"
     cfg = config_from_args(None, TINY)
     summary = run_batch(captures, out, cfg, BatchConfig(cpus_per_stage=1))
@@ -197,19 +203,11 @@ def test_summary_page_names_a_training_device_other_than_the_cpu(tmp_path):
 
 def test_more_gpus_per_training_than_any_node_has_is_a_one_line_error(small_ws, tmp_path, monkeypatch):
     """Ray would wait forever for a node with that many GPUs: the batch says so before it submits anything."""
-    import logging
-
     import ray
 
-    import pipeline.batch as batch_module
     from pipeline.config import config_from_args
 
-    def with_a_gpu(address):
-        ray.init(num_cpus=1, num_gpus=1, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
-                 object_store_memory=128 * 1024**2)
-        return ray
-
-    monkeypatch.setattr(batch_module, "_start_ray", with_a_gpu)
+    _local_ray_with_one_gpu(monkeypatch, cpus=1)
     captures = _captures(small_ws, tmp_path)
     with pytest.raises(StageError, match=r"--batch.train-gpus 2: no node of the cluster has that many GPUs "
                                          r"\(at most 1\)"):
