@@ -71,7 +71,9 @@ class SupportClip:
         """``logit`` (M,) at points p (M, 3) clipped to min(logit, slope · height above the plane), if one is set."""
         if self.support is None:
             return logit
-        pl = self.support.to(device=p.device, dtype=logit.dtype)
+        if self.support.device != p.device:  # moved once: on CUDA a copy per call waited for the device every time
+            self.support = self.support.to(p.device)
+        pl = self.support.to(dtype=logit.dtype)
         h = p.to(logit.dtype) @ pl[:3] + pl[3]
         return torch.minimum(logit, SUPPORT_SLOPE * h)
 
