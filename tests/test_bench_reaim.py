@@ -3,7 +3,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bench.reaim import fit_rotation
+from bench.reaim import degrees_turned, fit_rotation
 
 H, W = 120, 160
 K = np.array([[150.0, 0, 83.0], [0, 150.0, 57.0], [0, 0, 1]])
@@ -31,7 +31,8 @@ def _rot(axis, deg) -> np.ndarray:
 
 
 def _angle(Ra, Rb) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+    """Degrees between two rotations."""
+    return degrees_turned(Ra.T @ Rb)
 
 
 @pytest.mark.parametrize("axis,deg", [((0, 1, 0), 0.4), ((1, 0.5, 0), -0.3), ((0.2, -1, 0.3), 0.8)])
