@@ -130,3 +130,29 @@ def test_grabcut_on_all_cores_is_deterministic(camo):
     a = grabcut_all(imgs, labs, 3)
     b = grabcut_all(imgs[::-1], labs[::-1], 3)[::-1]
     assert all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
+def test_grabcut_runs_on_the_box_of_the_uncertain_pixels(camo, monkeypatch):
+    """With a margin, GrabCut sees only the bounding box of the pixels not fixed as background, widened by the
+    margin (clipped to the image), and its mask agrees with the whole image's run; the fixed background outside the
+    box stays background."""
+    from pipeline import masks as M
+
+    _, _, imgs, gt = camo
+    g = gt[0]
+    lab = np.full(g.shape, cv2.GC_BGD, np.uint8)
+    lab[cv2.dilate(g.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0] = cv2.GC_PR_BGD
+    lab[g] = cv2.GC_PR_FGD
+    lab[cv2.erode(g.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0] = cv2.GC_FGD
+    seen, real = [], cv2.grabCut
+    monkeypatch.setattr(M.cv2, "grabCut", lambda img, m, *a: (seen.append(img.shape[:2]), real(img, m, *a))[1])
+    whole = M.grabcut(imgs[0], lab, 3)
+    boxed = M.grabcut(imgs[0], lab, 3, margin=0.05)
+    ys, xs = np.nonzero(lab != cv2.GC_BGD)
+    pad = round(0.05 * max(g.shape))
+    want = (min(g.shape[0], ys.max() + 1 + pad) - max(0, ys.min() - pad),
+            min(g.shape[1], xs.max() + 1 + pad) - max(0, xs.min() - pad))
+    assert seen == [g.shape, want] and want[0] * want[1] < g.size
+    assert not boxed[lab == cv2.GC_BGD].any()
+    iou = lambda a, b: (a & b).sum() / (a | b).sum()  # noqa: E731
+    assert iou(boxed, whole) > 0.98 and iou(boxed, g) > iou(whole, g) - 0.01
