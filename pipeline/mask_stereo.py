@@ -101,31 +101,33 @@ def stereo_costs(images: torch.Tensor, cams: Cameras, far: np.ndarray, n_depths:
 
 class _Scorer:
     """Matching cost of reference view ``i`` at 3-D points (one per pixel): 5×5 box-filtered L1 colour difference
-    with each neighbour view, the mean of the best half (inf where fewer than half the neighbours see the point)."""
+    with each neighbour view, the mean of the best half (inf where fewer than half the neighbours see the point).
+    All neighbours are warped and filtered in one batch."""
 
     def __init__(self, imgs: torch.Tensor, P: torch.Tensor, neighbours: np.ndarray, i: int, patch: int,
                  sizes: np.ndarray | None = None):
-        self.imgs, self.P, self.nb, self.ref, self.patch = imgs, P, neighbours, imgs[i], patch
         _, _, H, W = imgs.shape
-        self.sizes = np.tile([W, H], (len(imgs), 1)) if sizes is None else np.asarray(sizes)
+        sizes = np.tile([W, H], (len(imgs), 1)) if sizes is None else np.asarray(sizes)
+        idx = torch.as_tensor(np.asarray(neighbours), dtype=torch.long, device=imgs.device)
+        self.P, self.ref, self.patch = P[idx], imgs[i], patch
+        self.nb_imgs = imgs[idx]  # (k, 3, H, W)
+        wh = torch.as_tensor(sizes[np.asarray(neighbours)], dtype=torch.float32, device=imgs.device)
+        self.w_k, self.h_k = wh[:, :1], wh[:, 1:]  # (k, 1) each neighbour's own width and height
 
     def __call__(self, X: torch.Tensor) -> torch.Tensor:
-        _, _, H, W = self.imgs.shape
-        costs = []
-        uvs, zs = project(X, self.P[self.nb])  # (k, HW, 2), (k, HW) in every neighbour
-        for k, uv, zk in zip(self.nb, uvs, zs):
-            grid = torch.stack([uv[:, 0] / W * 2 - 1, uv[:, 1] / H * 2 - 1], -1).view(1, H, W, 2)
-            warped = F.grid_sample(self.imgs[k : k + 1], grid, align_corners=False, padding_mode="zeros")[0]
-            w_k, h_k = (float(x) for x in self.sizes[k])
-            seen = (uv[:, 0] >= 0) & (uv[:, 0] <= w_k) & (uv[:, 1] >= 0) & (uv[:, 1] <= h_k) & (zk > 1e-6)
-            ok = seen.view(H, W).float()
-            diff = (warped - self.ref).abs().mean(0)
-            p = self.patch
-            num = F.avg_pool2d((diff * ok)[None, None], p, 1, p // 2, count_include_pad=False)[0, 0]
-            den = F.avg_pool2d(ok[None, None], p, 1, p // 2, count_include_pad=False)[0, 0]
-            costs.append(torch.where(den > 0.99, num / den.clamp_min(1e-6), torch.full_like(num, float("inf"))))
-        cs = torch.stack(costs).sort(dim=0).values
-        return cs[: max(1, cs.shape[0] // 2)].mean(0)
+        k, _, H, W = self.nb_imgs.shape
+        uv, z = project(X, self.P)  # (k, HW, 2), (k, HW) in every neighbour
+        grid = torch.stack([uv[..., 0] / W * 2 - 1, uv[..., 1] / H * 2 - 1], -1).view(k, H, W, 2)
+        warped = F.grid_sample(self.nb_imgs, grid, align_corners=False, padding_mode="zeros")
+        seen = (uv[..., 0] >= 0) & (uv[..., 0] <= self.w_k) & (uv[..., 1] >= 0) & (uv[..., 1] <= self.h_k) & (z > 1e-6)
+        ok = seen.view(k, 1, H, W).float()
+        diff = (warped - self.ref).abs().mean(1, keepdim=True)
+        p = self.patch
+        num = F.avg_pool2d(diff * ok, p, 1, p // 2, count_include_pad=False)[:, 0]
+        den = F.avg_pool2d(ok, p, 1, p // 2, count_include_pad=False)[:, 0]
+        costs = torch.where(den > 0.99, num / den.clamp_min(1e-6), torch.full_like(num, float("inf")))
+        cs = costs.sort(dim=0).values
+        return cs[: max(1, k // 2)].mean(0)
 
 
 def stereo_labels(c_in: torch.Tensor, c_out: torch.Tensor, ratio: float = 0.5, min_cost: float = 0.03,
