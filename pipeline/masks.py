@@ -43,7 +43,7 @@ from dvr.data import list_images, pad_stack, read_mask
 from dvr.hull import grid_points, hull_logits, mask_lookup
 
 from .mask_stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
-from .raycast import mesh_intersector, pixel_center_rays
+from .raycast import covered_pixels, mesh_intersector, pixel_center_rays
 from .sfm import read_stage_model
 from .support import GROUND_BAND, footprint_prism, plane_basis
 from .workspace import Done, Job, StageError, Workspace
@@ -193,7 +193,8 @@ def object_region(cams: Cameras, i: int, h: int, w: int, footprint=None) -> np.n
     without one) and, given the object's ``footprint`` prism (:func:`pipeline.support.footprint_prism`), through
     that. The object lies there by construction: every other pixel is background."""
     o, d = pixel_center_rays(cams.K[i], cams.R[i], cams.centers[i], w, h)
-    through = np.ones(len(d), bool) if footprint is None else mesh_intersector(footprint).intersects_any(o, d)
+    through = np.ones(len(d), bool) if footprint is None else covered_pixels(
+        mesh_intersector(footprint), footprint.vertices, cams.K[i], cams.R[i], cams.centers[i], w, h).ravel()
     near, far, hit = (x.numpy() for x in sphere_bounds(torch.from_numpy(o.copy()), torch.from_numpy(d)))
     if cams.ground is not None:
         h0 = plane_height(cams.ground, o)  # camera height (the same for every ray)
@@ -311,8 +312,9 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     """Render the visual hull of ``masks`` (:func:`visual_hull`; its ``logits`` when already built) into every
     view: one bool array per view.
 
-    The hull's logit volume becomes a mesh (marching cubes) and every pixel centre's ray is cast against it
-    (Embree through trimesh) — 40× faster than marching the volume along every ray.
+    The hull's logit volume becomes a mesh (marching cubes) and the ray of every pixel centre in the box of its
+    projection is cast against it (Embree through trimesh; :func:`pipeline.raycast.covered_pixels`) — 40× faster
+    than marching the volume along every ray.
     """
     import trimesh
     from skimage import measure
@@ -321,12 +323,10 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     if lg.max() <= 0 or lg.min() > 0:
         return [np.full(m.shape, lg.min() > 0) for m in masks]
     v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
-    inter = mesh_intersector(trimesh.Trimesh(v - 1.0, f, process=False))
-    out = []
-    for i, (H, W) in enumerate(m.shape for m in masks):
-        o, d = pixel_center_rays(cams.K[i], cams.R[i], cams.centers[i], W, H)
-        out.append(inter.intersects_any(o, d).reshape(H, W))
-    return out
+    hull = trimesh.Trimesh(v - 1.0, f, process=False)
+    inter = mesh_intersector(hull)
+    return [covered_pixels(inter, hull.vertices, cams.K[i], cams.R[i], cams.centers[i], W, H)
+            for i, (H, W) in enumerate(m.shape for m in masks)]
 
 
 def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, logits: torch.Tensor | None = None):

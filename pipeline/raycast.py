@@ -16,12 +16,47 @@ def mesh_intersector(mesh: trimesh.Trimesh):
         return trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
 
 
-def pixel_center_rays(K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int,
-                      height: int) -> tuple[np.ndarray, np.ndarray]:
+def pixel_center_rays(K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int, height: int,
+                      box: tuple[int, int, int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Origins and unit directions (height·width, 3), row-major, through every pixel centre (j + 0.5, i + 0.5)
-    of a pinhole camera (K, world→camera rotation R, camera centre)."""
-    jj, ii = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    of a pinhole camera (K, world→camera rotation R, camera centre); with ``box`` = (y0, y1, x0, x1) only through
+    the pixels of rows y0..y1−1 and columns x0..x1−1, row-major."""
+    y0, y1, x0, x1 = (0, height, 0, width) if box is None else box
+    jj, ii = np.meshgrid(np.arange(x0, x1) + 0.5, np.arange(y0, y1) + 0.5)
     pix = np.stack([jj, ii, np.ones_like(jj)], -1).reshape(-1, 3)
     d = pix @ np.linalg.inv(K).T @ R
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return np.broadcast_to(np.asarray(center, float), d.shape), d
+
+
+def projected_box(vertices: np.ndarray, K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int,
+                  height: int) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1): the pixels (rows y0..y1−1, columns x0..x1−1) around the bounding box of ``vertices`` as the
+    camera projects them, a pixel wider on every side and clipped to the image: no other pixel's ray can meet a
+    mesh of these vertices (each triangle in front of the camera projects into the triangle of its projected
+    vertices). Empty (y0 == y1 or x0 == x1) when the mesh lies outside the image; None when a vertex lies on or
+    behind the camera plane, whose projection bounds nothing."""
+    cam = (np.asarray(vertices, float) - np.asarray(center, float)) @ np.asarray(R, float).T
+    if len(cam) == 0:
+        return 0, 0, 0, 0
+    if (cam[:, 2] <= 1e-9).any():
+        return None
+    uvw = cam @ np.asarray(K, float).T
+    u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+    x0, x1 = int(np.clip(np.floor(u.min()) - 1, 0, width)), int(np.clip(np.ceil(u.max()) + 1, 0, width))
+    y0, y1 = int(np.clip(np.floor(v.min()) - 1, 0, height)), int(np.clip(np.ceil(v.max()) + 1, 0, height))
+    return y0, max(y0, y1), x0, max(x0, x1)
+
+
+def covered_pixels(intersector, vertices: np.ndarray, K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int,
+                   height: int) -> np.ndarray:
+    """(height, width) bool: the pixels whose centre's ray meets the mesh of ``intersector``
+    (:func:`mesh_intersector`) with ``vertices``; only the rays of :func:`projected_box` are cast (all when it
+    bounds nothing)."""
+    box = projected_box(vertices, K, R, center, width, height)
+    y0, y1, x0, x1 = (0, height, 0, width) if box is None else box
+    out = np.zeros((height, width), bool)
+    if y1 > y0 and x1 > x0:
+        o, d = pixel_center_rays(K, R, center, width, height, (y0, y1, x0, x1))
+        out[y0:y1, x0:x1] = intersector.intersects_any(o, d).reshape(y1 - y0, x1 - x0)
+    return out
