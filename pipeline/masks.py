@@ -238,20 +238,30 @@ def remove_specks(mask: np.ndarray, fraction: float) -> np.ndarray:
     return out
 
 
-def grabcut(img: np.ndarray, init: np.ndarray, iters: int, margin: float | None = None) -> np.ndarray:
+def uncertain_box(init: np.ndarray, margin: float, within: np.ndarray | None = None) -> tuple[slice, slice] | None:
+    """The bounding box of the pixels of a GrabCut label image not fixed as background (``GC_BGD``; only those
+    ``within`` a bool array, when given), widened by ``margin`` × the image's larger side and clipped to it; None
+    when there are none."""
+    ys, xs = np.nonzero((init != cv2.GC_BGD) if within is None else (init != cv2.GC_BGD) & within)
+    if len(ys) == 0:
+        return None
+    pad = int(round(margin * max(init.shape)))
+    return slice(max(0, ys.min() - pad), ys.max() + 1 + pad), slice(max(0, xs.min() - pad), xs.max() + 1 + pad)
+
+
+def grabcut(img: np.ndarray, init: np.ndarray, iters: int, margin: float | None = None,
+            box: tuple[slice, slice] | None = None) -> np.ndarray:
     """GrabCut from a label image (cv2.GC_*); returns a bool mask. Degenerate seeds fall back to the init. With
     ``margin`` ≥ 0 it runs on the bounding box of the pixels not fixed as background (``GC_BGD``, which stay
     background whatever GrabCut does), widened by that fraction of the image's larger side (1: the whole image): the
-    same labels on fewer pixels, whose background colours are those near the object."""
+    same labels on fewer pixels, whose background colours are those near the object. ``box``: run on that box
+    instead (outside it: background)."""
     has_fg = np.isin(init, (cv2.GC_FGD, cv2.GC_PR_FGD)).any()
     has_bg = np.isin(init, (cv2.GC_BGD, cv2.GC_PR_BGD)).any()
     if not (has_fg and has_bg):
         return np.isin(init, (cv2.GC_FGD, cv2.GC_PR_FGD))
-    box = (slice(None), slice(None))
-    if margin is not None:
-        ys, xs = np.nonzero(init != cv2.GC_BGD)
-        pad = int(round(margin * max(init.shape)))
-        box = (slice(max(0, ys.min() - pad), ys.max() + 1 + pad), slice(max(0, xs.min() - pad), xs.max() + 1 + pad))
+    if box is None:
+        box = (slice(None), slice(None)) if margin is None else uncertain_box(init, margin)
     m = init[box].copy()
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
     cv2.setRNGSeed(0)  # GrabCut's k-means draws from this thread's RNG: same mask whatever thread runs it
@@ -264,11 +274,13 @@ def grabcut(img: np.ndarray, init: np.ndarray, iters: int, margin: float | None 
     return out
 
 
-def grabcut_all(imgs: list[np.ndarray], labels: list[np.ndarray], iters: int, margin: float | None = None
-                ) -> list[np.ndarray]:
-    """:func:`grabcut` of every image, on all CPU cores (OpenCV releases the GIL; results keep their order)."""
+def grabcut_all(imgs: list[np.ndarray], labels: list[np.ndarray], iters: int, margin: float | None = None,
+                boxes: list[tuple[slice, slice]] | None = None) -> list[np.ndarray]:
+    """:func:`grabcut` of every image (in ``boxes``, one per image, when given), on all CPU cores (OpenCV releases
+    the GIL; results keep their order)."""
+    boxes = boxes if boxes is not None else [None] * len(imgs)
     with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
-        return list(pool.map(lambda a: grabcut(a[0], a[1], iters, margin), zip(imgs, labels)))
+        return list(pool.map(lambda a: grabcut(a[0], a[1], iters, margin, a[2]), zip(imgs, labels, boxes)))
 
 
 def seed_labels(cams: Cameras, i: int, h: int, w: int, pts_n: np.ndarray | None, vis: list[int] | None,
@@ -461,9 +473,18 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
     for rnd in range(rounds):
         sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views, first_hull if rnd == 0 else None)
         labs = [vote_labels(seeds[i], sil[i], kernel) for i in range(len(imgs))]
-        new = grabcut_all(imgs, labs, cfg.grabcut_iters, cfg.grabcut_margin)
-        if region is not None:
-            new = [np.where(r, n, c) for r, n, c in zip(region, new, current)]
+        if region is None:
+            new = grabcut_all(imgs, labs, cfg.grabcut_iters, cfg.grabcut_margin)
+        else:  # GrabCut on the box of the region's undecided pixels, the rest of that box fixed as it is
+            labs = [np.where(r, lab, np.where(c, cv2.GC_FGD, cv2.GC_BGD)).astype(np.uint8)
+                    for r, lab, c in zip(region, labs, current)]
+            boxes = [uncertain_box(lab, cfg.grabcut_margin, r) for lab, r in zip(labs, region)]
+            todo = [i for i, b in enumerate(boxes) if b is not None]
+            cut = grabcut_all([imgs[i] for i in todo], [labs[i] for i in todo], cfg.grabcut_iters,
+                              boxes=[boxes[i] for i in todo])
+            new = list(current)
+            for i, m in zip(todo, cut):
+                new[i] = np.where(region[i], m, current[i])
         new = [remove_specks(m, cfg.speck_fraction) for m in new]
         flips = sum(int((a != b).sum()) for a, b in zip(new, current))
         changed.append(flips / max(1, sum(int(m.sum()) for m in new)))

@@ -360,15 +360,20 @@ def _arch_views(n=12):
     return cams, imgs, truth, through
 
 
-def test_floor_rounds_clear_the_floor_between_the_legs_and_change_nothing_above_the_band():
+def test_floor_rounds_clear_the_floor_between_the_legs_and_change_nothing_above_the_band(monkeypatch):
     """The floor rounds (``vote`` with a region): masks that hold the floor seen through the arch's gap (a web
     between its legs) and, in one view, a blob of sky over the arch. Rounds restricted to the low band take the
     web out and leave the blob (it lies above the band: every pixel outside the band keeps its value); the same
     rounds unrestricted take the blob too — the band is what keeps the rest of a mask as the vote rounds left it
-    (more rounds everywhere carve thin parts a few views miss)."""
+    (more rounds everywhere carve thin parts a few views miss). Restricted, GrabCut sees only the box of the band's
+    undecided pixels, fewer than it sees unrestricted (the arch is low: the band covers much of it)."""
     import cv2
 
+    from pipeline import masks as M
     from pipeline.masks import MasksConfig, low_band, vote
+
+    seen, real = [], cv2.grabCut
+    monkeypatch.setattr(M.cv2, "grabCut", lambda img, m, *a: (seen.append(m.size), real(img, m, *a))[1])
 
     cams, imgs, truth, through = _arch_views()
     webbed = [t | g for t, g in zip(truth, through)]
@@ -385,6 +390,7 @@ def test_floor_rounds_clear_the_floor_between_the_legs_and_change_nothing_above_
     assert sum((lo & g).sum() for lo, g in zip(low, through)) > 0.95 * sum(g.sum() for g in through)
     out, _, changed = vote(imgs, seeds, start, cams, cfg, 3, cfg.floor_settle, low)
     assert 1 <= len(changed) <= 3
+    restricted, seen[:] = np.mean(seen), []
     for m, s, lo in zip(out, start, low):
         assert np.array_equal(m[~lo], s[~lo])
     assert out[0][blob].all()
@@ -393,3 +399,4 @@ def test_floor_rounds_clear_the_floor_between_the_legs_and_change_nothing_above_
     assert web_left < 0.1 and kept > 0.97
     free, _, _ = vote(imgs, seeds, start, cams, cfg, 3, cfg.floor_settle)
     assert not free[0][blob].any()
+    assert restricted < 0.8 * np.mean(seen)  # pixels GrabCut saw per view and round
