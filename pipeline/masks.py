@@ -82,9 +82,9 @@ class MasksConfig:
     cow (IoU 0.9963 → 0.9960 → 0.9960), 34.7 → 31.2 → 24.1 s on the jar (0.9965 → 0.9963 → 0.9960), 29.8 → 25.7 →
     25.5 s on the book (0.9955 → 0.9953 → 0.9949); one saved mapping each, stop 43."""
     grabcut_margin: float = 0.05
-    """GrabCut runs on the bounding box of each view's pixels that are not certain background, widened by this
-    fraction of the image's larger side (its background colour model then learns the colours near the object);
-    1: the whole image. 0.05 against the whole image, one saved mapping each (stop 44): the masks stage
+    """GrabCut runs on the bounding box of each view's pixels that are not certain background (in the floor rounds:
+    of those in the low band), widened by this fraction of the image's larger side (its background colour model
+    then learns the colours near the object); 1: the whole image. 0.05 against the whole image, one saved mapping each (stop 44): the masks stage
     38.2 → 30.9 s on the cow (again, in the other order: 36.2 → 32.5 s; IoU 0.9963 → 0.9967), 34.2 → 29.7 s on
     the jar (0.9965 → 0.9963), 30.7 → 27.3 s on the book (0.9955 → 0.9966); DTU, whose building fills the
     frames, 63.3 → 64.7 s."""
