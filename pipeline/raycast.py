@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from dvr.cameras import project_points
+
 
 def mesh_intersector(mesh: trimesh.Trimesh):
     """trimesh ray intersector for ``mesh``: Embree (``embreex``) when installed, else trimesh's own."""
@@ -36,13 +38,14 @@ def projected_box(vertices: np.ndarray, K: np.ndarray, R: np.ndarray, center: np
     mesh of these vertices (each triangle in front of the camera projects into the triangle of its projected
     vertices). Empty (y0 == y1 or x0 == x1) when the mesh lies outside the image; None when a vertex lies on or
     behind the camera plane, whose projection bounds nothing."""
-    cam = (np.asarray(vertices, float) - np.asarray(center, float)) @ np.asarray(R, float).T
-    if len(cam) == 0:
+    if len(vertices) == 0:
         return 0, 0, 0, 0
-    if (cam[:, 2] <= 1e-9).any():
+    R = np.asarray(R, float)
+    uv, z = project_points(K @ np.concatenate([R, -R @ np.asarray(center, float)[:, None]], 1),
+                           np.asarray(vertices, float))
+    if (z <= 1e-9).any():
         return None
-    uvw = cam @ np.asarray(K, float).T
-    u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+    u, v = uv[:, 0], uv[:, 1]
     x0, x1 = int(np.clip(np.floor(u.min()) - 1, 0, width)), int(np.clip(np.ceil(u.max()) + 1, 0, width))
     y0, y1 = int(np.clip(np.floor(v.min()) - 1, 0, height)), int(np.clip(np.ceil(v.max()) + 1, 0, height))
     return y0, max(y0, y1), x0, max(x0, x1)
