@@ -3,14 +3,15 @@ workspaces on whatever device ``device: auto`` finds, then mesh, texture and hel
 
     python bench/gpu.py prepare DIR            # here: the training workspaces (images, masks, cameras, depth)
     python bench/gpu.py train DIR [RUN...]     # on the GPU machine: the train stage per run → DIR/gpu.json
-                                               # (RUN: SCENE:PRESET; default cow:default cow:quality dtu:default;
+                                               # (RUN: SCENE:PRESET[:eager], eager: no CUDA graphs; default
+                                               #  cow:default cow:quality dtu:default;
                                                #  the batch's captures: torus_noise:fast … as in bench/batch.py)
     python bench/gpu.py evaluate DIR           # here again: mesh + texture + held-out PSNR per trained model
     python bench/gpu.py profile DIR            # on the GPU machine: where a default training step's time goes
     python bench/gpu.py share DIR N...         # on the GPU machine: the batch's captures trained N at a time on the
                                                # one GPU, one torch thread each (Ray's --batch.train-gpus 1/N)
-    python bench/gpu.py graph DIR              # on the GPU machine: a step's surface finding as today, with fixed
-                                               # shapes and no waits, and that replayed as one CUDA graph
+    python bench/gpu.py graph DIR              # on the GPU machine: a step's surface finding eagerly, with fixed
+                                               # shapes, and as trained (on CUDA replayed as one CUDA graph)
 
 The GPU machine needs torch, numpy, scipy, scikit-image, opencv, tyro, trimesh, kornia and PyYAML (no pycolmap,
 pymeshlab, xatlas: the stages that need them run in the evaluate step); bench/gpu_check.sh installs the ones its
@@ -68,17 +69,19 @@ def train(out: Path, runs: list[str]) -> None:
     from bench.evaluate import config, stages
 
     rec = {"device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu", "runs": []}
-    for name, preset in (r.split(":") for r in runs):
+    for name, preset, *eager in (r.split(":") for r in runs):
         if name not in SCENES + BATCH:
             sys.exit(f"{name}: not a scene of this bench ({', '.join(SCENES + BATCH)})")
-        ws = out / "runs" / f"{name}_{preset}"
+        cfg = config(preset)
+        cfg.train.cuda_graphs = not eager  # SCENE:PRESET:eager: the surface finding without CUDA graphs
+        ws = out / "runs" / "_".join([name, preset, *eager])
         shutil.rmtree(ws, ignore_errors=True)
         shutil.copytree(out / name, ws)
-        stages(("train",), ws, config(preset))
+        stages(("train",), ws, cfg)
         secs = json.loads((ws / ".stages" / "train.json").read_text())["seconds"]
-        rec["runs"].append({"scene": name, "preset": preset, "train_seconds": secs})
-        print(f"{name} {preset}: train {secs:.1f} s on {rec['device']}", flush=True)
-    (out / "gpu.json").write_text(json.dumps(rec, indent=1))
+        rec["runs"].append({"scene": name, "preset": preset, "cuda_graphs": not eager, "train_seconds": secs})
+        print(f"{name} {preset}{' eager' if eager else ''}: train {secs:.1f} s on {rec['device']}", flush=True)
+        (out / "gpu.json").write_text(json.dumps(rec, indent=1))  # after each run: a call cut short keeps its rows
 
 
 def evaluate(out: Path) -> None:
@@ -91,7 +94,8 @@ def evaluate(out: Path) -> None:
     for run in rec["runs"]:
         if run["scene"] in BATCH:  # their train seconds are what bench/batch.py --gpu-train takes
             continue
-        ws = out / "runs" / f"{run['scene']}_{run['preset']}"
+        eager = [] if run.get("cuda_graphs", True) else ["eager"]
+        ws = out / "runs" / "_".join([run["scene"], run["preset"], *eager])
         if not (ws / "model" / "final.pt").exists():
             print(f"{ws}: no trained model came back from the GPU machine; not evaluated")
             continue
@@ -149,47 +153,18 @@ def share(out: Path, at_once: list[int]) -> None:
         (out / "share.json").write_text(json.dumps(rows, indent=1))  # after each n: a run cut short keeps its rows
 
 
-def find_surface_static(logit_fn, origins, dirs, n_steps: int, n_secant: int, level: float = 0.0):
-    """:func:`dvr.march.find_surface` (no jitter) with fixed shapes and no wait for the device, so that a CUDA graph
-    can hold it: every sample of every ray in one block (as the trainer's batches are evaluated already), the secant
-    on every ray (a harmless bracket where there is no crossing) and the statuses chosen with ``where``, not by
-    indexing. Same result where ``find_surface`` evaluates its rays in one block."""
-    import torch
-
-    from dvr.cameras import sphere_bounds
-    from dvr.march import HIT, INSIDE, MISS, SurfaceResult, sample_depths, secant
-
-    with torch.no_grad():
-        near, far, valid = sphere_bounds(origins, dirs)
-        depths = sample_depths(near, far, n_steps, False)
-        pts = origins[:, None, :] + depths[..., None] * dirs[:, None, :]
-        vals = logit_fn(pts.reshape(-1, 3)).to(origins.dtype).view(depths.shape) - level
-        barg = vals.argmax(dim=1)
-        max_depth = torch.where(valid, depths.gather(1, barg[:, None])[:, 0], 0.5 * (near + far))
-        inside = valid & (vals[:, 0] >= 0)
-        cross = (vals[:, :-1] < 0) & (vals[:, 1:] >= 0)
-        found = valid & cross.any(dim=1) & ~inside
-        k = cross.to(torch.int8).argmax(dim=1)[:, None]
-        lo_d, hi_d = depths.gather(1, k)[:, 0], depths.gather(1, k + 1)[:, 0]
-        lo_f = torch.where(found, vals.gather(1, k)[:, 0], torch.full_like(near, -1.0))
-        hi_f = torch.where(found, vals.gather(1, k + 1)[:, 0], torch.ones_like(near))
-        root = secant(logit_fn, origins, dirs, lo_d, hi_d, lo_f + level, hi_f + level, n_secant, level)
-        depth = torch.where(found, root, torch.where(inside, near, far))
-        code = torch.where(found, HIT, torch.where(inside, INSIDE, MISS)).to(torch.int8)
-        return SurfaceResult(depth, code, near, far, max_depth)
-
-
 def graph(out: Path, repeats: int = 50) -> None:
     """The cow's default training field after 200 steps, one step's rays (default batch and samples): the surface
-    finding as the trainer runs it, the fixed-shape version, and that replayed as one CUDA graph (ms each, and
-    whether the three agree)."""
+    finding eagerly (``find_surface``, the trainer's before stop 45 and its way on CPU), with fixed shapes
+    (``find_surface_fixed``) and as the trainer runs it now (``SurfaceFinder``: on CUDA that replayed as one CUDA
+    graph, inputs and outputs copied), ms each and whether they agree."""
     import time
 
     import torch
 
     from dvr.data import load_scene
     from dvr.device import resolve_device
-    from dvr.march import find_surface
+    from dvr.march import find_surface, find_surface_fixed, sample_fractions
     from dvr.trainer import Trainer
     from pipeline.config import load_config
 
@@ -203,6 +178,7 @@ def graph(out: Path, repeats: int = 50) -> None:
     origins, dirs = t.sampler.sample(cfg.batch_rays)[:2]
     n = t.n_steps_at(200)
     occ = t.model.occupancy
+    fractions = sample_fractions(origins.shape[0], n, False, dev, origins.dtype)
 
     def timed(fn) -> float:
         for _ in range(3):
@@ -214,30 +190,19 @@ def graph(out: Path, repeats: int = 50) -> None:
         sync()
         return (time.perf_counter() - t0) / repeats * 1e3
 
-    eager = find_surface(occ, origins, dirs, n_steps=n, n_secant=cfg.n_secant)
-    fixed = find_surface_static(occ, origins, dirs, n, cfg.n_secant)
-    rows = {"as trained": timed(lambda: find_surface(occ, origins, dirs, n_steps=n, n_secant=cfg.n_secant)),
-            "fixed shapes": timed(lambda: find_surface_static(occ, origins, dirs, n, cfg.n_secant))}
-    agree = {"fixed shapes": bool(torch.equal(eager.status, fixed.status)
-                                  and torch.allclose(eager.depth, fixed.depth, atol=1e-5))}
-    if dev.type == "cuda":
-        o_in, d_in = origins.clone(), dirs.clone()
-        side = torch.cuda.Stream()
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
-            for _ in range(3):
-                find_surface_static(occ, o_in, d_in, n, cfg.n_secant)
-        torch.cuda.current_stream().wait_stream(side)
-        g = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(g):
-            held = find_surface_static(occ, o_in, d_in, n, cfg.n_secant)
-        rows["one CUDA graph"] = timed(lambda: (o_in.copy_(origins), d_in.copy_(dirs), g.replay()))
-        agree["one CUDA graph"] = bool(torch.equal(eager.status, held.status)
-                                       and torch.allclose(eager.depth, held.depth, atol=1e-5))
-    for name, ms in rows.items():
-        print(f"surface finding, {name}: {ms:.2f} ms on {dev}" + (f" (agrees: {agree[name]})" if name in agree
-                                                                      else ""))
-    (out / "graph.json").write_text(json.dumps({"device": str(dev), "ms": rows, "agrees": agree}, indent=1))
+    calls = {"eager": lambda: find_surface(occ, origins, dirs, n_steps=n, n_secant=cfg.n_secant),
+             "fixed shapes": lambda: find_surface_fixed(occ, origins, dirs, fractions, cfg.n_secant),
+             "as trained": lambda: t.find_surface(origins, dirs, n_steps=n, jitter=False)}
+    eager = calls["eager"]()
+    rows, agree = {}, {}
+    for name, fn in calls.items():
+        res = fn()
+        agree[name] = bool(torch.equal(eager.status, res.status) and torch.allclose(eager.depth, res.depth, atol=1e-5))
+        rows[name] = timed(fn)
+        print(f"surface finding, {name}: {rows[name]:.2f} ms on {dev} (agrees: {agree[name]})")
+    print(f"graphs captured: {t.find_surface.captures}")
+    (out / "graph.json").write_text(json.dumps({"device": str(dev), "ms": rows, "agrees": agree,
+                                                "captures": t.find_surface.captures}, indent=1))
 
 
 def profile(out: Path, steps: int = 20) -> None:

@@ -142,7 +142,8 @@ class TriPlane(nn.Module):
 
     def forward(self, p: torch.Tensor) -> torch.Tensor:
         """Features (M, channels × levels) at points p (M, 3)."""
-        q = torch.stack([p[:, [0, 1]], p[:, [0, 2]], p[:, [1, 2]]]).unsqueeze(2)  # (3, M, 1, 2)
+        # slices, not index lists: a list is copied to the device at each call (a wait on CUDA, none in a graph)
+        q = torch.stack([p[:, 0:2], p[:, 0::2], p[:, 1:3]]).unsqueeze(2)  # (3, M, 1, 2): the xy, xz, yz planes
         q = q.to(self.planes[0].dtype)
         feats = []
         for planes in self.planes:

@@ -49,15 +49,36 @@ def _check_rays(origins: torch.Tensor, dirs: torch.Tensor) -> None:
         raise ValueError(f"dirs must match origins {tuple(origins.shape)}, got {tuple(dirs.shape)}")
 
 
-def sample_depths(near: torch.Tensor, far: torch.Tensor, n_steps: int, jitter: bool, generator=None) -> torch.Tensor:
-    """(B, n_steps) depths from near to far (both included); jitter moves interior samples within their cell."""
-    t = torch.linspace(0.0, 1.0, n_steps, device=near.device, dtype=near.dtype).expand(near.shape[0], n_steps)
+def sample_fractions(n_rays: int, n_steps: int, jitter: bool, device: torch.device, dtype: torch.dtype,
+                     generator=None) -> torch.Tensor:
+    """(B, n_steps) positions along each ray's chord, 0 at near and 1 at far (both included); jitter moves interior
+    samples within their cell (one uniform draw per sample)."""
+    t = torch.linspace(0.0, 1.0, n_steps, device=device, dtype=dtype).expand(n_rays, n_steps)
     if jitter and n_steps > 2:
-        noise = torch.rand(near.shape[0], n_steps, device=near.device, dtype=near.dtype, generator=generator) - 0.5
+        noise = torch.rand(n_rays, n_steps, device=device, dtype=dtype, generator=generator) - 0.5
         noise[:, 0] = 0.0
         noise[:, -1] = 0.0
         t = t + noise / (n_steps - 1)
-    return near[:, None] + (far - near)[:, None] * t
+    return t
+
+
+def depths_at(near: torch.Tensor, far: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
+    """(B, S) depths at the chord ``fractions`` (B, S) between near and far (B,)."""
+    return near[:, None] + (far - near)[:, None] * fractions
+
+
+def sample_depths(near: torch.Tensor, far: torch.Tensor, n_steps: int, jitter: bool, generator=None) -> torch.Tensor:
+    """(B, n_steps) depths from near to far (both included); jitter moves interior samples within their cell."""
+    return depths_at(near, far, sample_fractions(near.shape[0], n_steps, jitter, near.device, near.dtype, generator))
+
+
+def _first_crossing(cross: torch.Tensor, vals: torch.Tensor, depths: torch.Tensor):
+    """The bracket of each row's first free → occupied change: depths and logits − level at its two samples, from
+    ``cross`` (B, S−1) (sample k free, k + 1 occupied), ``vals`` and ``depths`` (B, S). Rows without a change get the
+    first two samples' (a bracket the caller does not use)."""
+    k = cross.to(torch.int8).argmax(dim=1, keepdim=True)
+    return (depths.gather(1, k)[:, 0], depths.gather(1, k + 1)[:, 0], vals.gather(1, k)[:, 0],
+            vals.gather(1, k + 1)[:, 0])
 
 
 @torch.no_grad()
@@ -198,14 +219,39 @@ def _march(logit_fn: LogitFn, origins: torch.Tensor, dirs: torch.Tensor, depths:
         cross = (vv[:, :-1] < 0) & (vv[:, 1:] >= 0)  # may have 0 columns (first block of width 1)
         found = cross.any(dim=1) & ~inside
         if found.any():
-            first = cross.to(torch.int8).argmax(dim=1)
             f_idx = active[found]
-            k = first[found]
-            m.lo_d[f_idx] = dd[found].gather(1, k[:, None])[:, 0]
-            m.hi_d[f_idx] = dd[found].gather(1, (k + 1)[:, None])[:, 0]
-            m.lo_f[f_idx] = vv[found].gather(1, k[:, None])[:, 0]
-            m.hi_f[f_idx] = vv[found].gather(1, (k + 1)[:, None])[:, 0]
+            m.lo_d[f_idx], m.hi_d[f_idx], m.lo_f[f_idx], m.hi_f[f_idx] = _first_crossing(cross[found], vv[found],
+                                                                                         dd[found])
             m.status[f_idx] = HIT
         m.prev[active] = vals[:, -1]
         active = active[~(found | inside)]
         s0 = s1
+
+
+@torch.no_grad()
+def find_surface_fixed(logit_fn: LogitFn, origins: torch.Tensor, dirs: torch.Tensor, fractions: torch.Tensor,
+                       n_secant: int = 8, level: float = 0.0) -> SurfaceResult:
+    """:func:`find_surface` with fixed shapes and no wait for the device, which a CUDA graph can hold: the samples at
+    ``fractions`` (B, S) of each chord (:func:`sample_fractions`), every sample of every ray in one block, the secant
+    on every ray (a harmless bracket where there is none) and the statuses chosen with ``where``, not by indexing.
+
+    Equals ``find_surface`` with the same fractions; it evaluates the field at every sample, and the secant on every
+    ray, so it costs more field evaluations (on CPU the eager version is the faster)."""
+    _check_rays(origins, dirs)
+    if fractions.ndim != 2 or fractions.shape[0] != origins.shape[0] or fractions.shape[1] < 2:
+        raise ValueError(f"fractions must be (B, S ≥ 2) with B = {origins.shape[0]}, got {tuple(fractions.shape)}")
+    near, far, valid = sphere_bounds(origins, dirs)
+    depths = depths_at(near, far, fractions)
+    pts = origins[:, None, :] + depths[..., None] * dirs[:, None, :]
+    vals = logit_fn(pts.reshape(-1, 3)).to(origins.dtype).view(depths.shape) - level
+    max_depth = torch.where(valid, depths.gather(1, vals.argmax(dim=1, keepdim=True))[:, 0], 0.5 * (near + far))
+    inside = valid & (vals[:, 0] >= 0)
+    cross = (vals[:, :-1] < 0) & (vals[:, 1:] >= 0)
+    found = valid & cross.any(dim=1) & ~inside
+    lo_d, hi_d, lo_f, hi_f = _first_crossing(cross, vals, depths)
+    lo_f = torch.where(found, lo_f, torch.full_like(lo_f, -1.0))  # rays without a bracket: a harmless one
+    hi_f = torch.where(found, hi_f, torch.ones_like(hi_f))
+    root = secant(logit_fn, origins, dirs, lo_d, hi_d, lo_f + level, hi_f + level, n_secant, level)
+    depth = torch.where(found, root, torch.where(inside, near, far))
+    status = torch.where(found, HIT, torch.where(inside, INSIDE, MISS)).to(torch.int8)
+    return SurfaceResult(depth, status, near, far, max_depth)

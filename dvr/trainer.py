@@ -25,10 +25,11 @@ from .device import resolve_device
 from .fields import Field, FieldConfig, finite_difference_normals, make_field
 from .hull import carve_along_rays, coarse_points, hull_bounding_sphere, hull_inside, inside_logits, outside_hull
 from .implicit import implicit_depth
-from .march import INSIDE, MISS, SurfaceResult, find_surface
+from .march import INSIDE, MISS, SurfaceResult
 from .photohull import PhotoCarveResult, photo_carve
 from .render import render_view
 from .shading import ViewShading
+from .surface_graph import SurfaceFinder
 
 
 @dataclass
@@ -129,6 +130,9 @@ class TrainConfig:
     """Secant (Illinois) refinement steps."""
     jitter: bool = True
     """Jitter the marching samples while training."""
+    cuda_graphs: bool = True
+    """On a GPU, replay each step's surface finding (march and secant) as a CUDA graph: the same surfaces, a fifth
+    of a default step's time less (no effect on CPU)."""
     lr_grid: float = 0.02
     """Adam learning rate of the grids and planes."""
     lr_mlp: float = 0.002
@@ -368,10 +372,16 @@ class Trainer:
         gamma = cfg.lr_decay ** (1.0 / max(1, cfg.iterations))
         self.sched = torch.optim.lr_scheduler.ExponentialLR(self.opt, gamma)
         self.sampler = RaySampler(data, cfg.boundary_fraction, generator=self.gen)
+        self.find_surface = SurfaceFinder(self.model.occupancy, self._occupancy_tensors, cfg.n_secant,
+                                          graphs=cfg.cuda_graphs)
         self.step = 0
         self.skipped = 0
         self.setup_seconds = time.perf_counter() - t_setup
         self.elapsed = self.setup_seconds  # what training took includes its setup (visual hull, photo hull)
+
+    def _occupancy_tensors(self) -> list[torch.Tensor | None]:
+        """What the occupancy reads: the field's parameters and buffers and its support plane."""
+        return [*self.model.parameters(), *self.model.buffers(), self.model.support]
 
     def _initial_logits(self) -> torch.Tensor:
         """The initial occupancy's logit volume (:func:`initial_inside`); the photo hull's counts, with
@@ -484,8 +494,7 @@ class Trainer:
         colour of the hits inside the mask (through this photo's colour transform with ``appearance``)."""
         c, m = self.cfg, self.model
         origins, dirs, observed, mask, view = self.sampler.sample(c.batch_rays)
-        surface = find_surface(m.occupancy, origins, dirs, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
-                               jitter=c.jitter, generator=None)
+        surface = self.find_surface(origins, dirs, n_steps=self.n_steps_at(step), jitter=c.jitter)
         hit = surface.hit
         hit_rays = hit.nonzero().view(-1)
         hit_depth = implicit_depth(m.occupancy, m.occupancy_parameters(), origins[hit_rays], dirs[hit_rays],
@@ -540,8 +549,7 @@ class Trainer:
         if sample is None:
             return None
         o, d, known = sample
-        surface = find_surface(m.occupancy, o, d, n_steps=self.n_steps_at(step), n_secant=c.n_secant,
-                               jitter=c.jitter)
+        surface = self.find_surface(o, d, n_steps=self.n_steps_at(step), jitter=c.jitter)
         hit_rays = surface.hit.nonzero().view(-1)
         rendered = implicit_depth(m.occupancy, m.occupancy_parameters(), o[hit_rays], d[hit_rays],
                                   surface.depth[hit_rays], c.grad_eps)

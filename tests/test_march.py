@@ -102,3 +102,65 @@ def test_jitter_keeps_order_and_endpoints():
 
 def test_status_codes_are_distinct():
     assert len({MISS, HIT, INSIDE}) == 3
+
+
+# ------------------------------------------------------------------ fixed shapes (what a CUDA graph holds)
+def two_balls(p: torch.Tensor) -> torch.Tensor:
+    """Logit > 0 inside either of two balls (a ray can cross twice: the first crossing counts)."""
+    a = 0.35 - (p - torch.tensor([0.3, 0.0, 0.0]).to(p)).norm(dim=-1)
+    b = 0.25 - (p - torch.tensor([-0.4, 0.1, 0.0]).to(p)).norm(dim=-1)
+    return 20.0 * torch.maximum(a, b)
+
+
+def mixed_rays(n: int = 400):
+    """Rays from outside towards the balls, rays that miss the unit sphere, and rays from inside a ball."""
+    g = torch.Generator().manual_seed(0)
+    o = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1) * 2.5
+    target = torch.randn(n, 3, generator=g) * 0.4
+    d = torch.nn.functional.normalize(target - o, dim=-1)
+    d[:40] = torch.nn.functional.normalize(torch.cross(o[:40], torch.randn(40, 3, generator=g), dim=-1), dim=-1)
+    o[40:80] = torch.tensor([0.3, 0.0, 0.0]) + 0.1 * torch.randn(40, 3, generator=g)  # inside the first ball
+    return o, d
+
+
+@pytest.mark.parametrize("n_secant,jitter,level", [(0, False, 0.0), (3, True, 0.0), (8, True, 1.5)])
+def test_fixed_shapes_find_the_same_surfaces(n_secant, jitter, level):
+    """find_surface_fixed with the fractions find_surface draws (same seed) finds the same surfaces."""
+    from dvr.march import find_surface_fixed, sample_fractions
+
+    o, d = mixed_rays()
+    torch.manual_seed(3)
+    ref = find_surface(two_balls, o, d, n_steps=64, n_secant=n_secant, level=level, jitter=jitter)
+    torch.manual_seed(3)
+    fractions = sample_fractions(o.shape[0], 64, jitter, o.device, o.dtype)
+    got = find_surface_fixed(two_balls, o, d, fractions, n_secant, level)
+    assert {int(c) for c in ref.status.unique()} == {HIT, MISS, INSIDE}  # every case is exercised
+    assert torch.equal(got.status, ref.status)
+    assert torch.allclose(got.depth, ref.depth, atol=1e-6) and torch.isfinite(got.depth).all()
+    assert torch.allclose(got.max_depth, ref.max_depth, atol=1e-6)
+    assert torch.equal(got.near, ref.near) and torch.equal(got.far, ref.far)
+    assert got.depth.shape == got.status.shape == (o.shape[0],) and got.status.dtype == torch.int8
+
+
+def test_fixed_shapes_bad_fractions():
+    from dvr.march import find_surface_fixed
+
+    o, w = rays(4)
+    with pytest.raises(ValueError, match="fractions must be"):
+        find_surface_fixed(sphere(), o, w, torch.zeros(3, 16))
+    with pytest.raises(ValueError, match="fractions must be"):
+        find_surface_fixed(sphere(), o, w, torch.zeros(4, 1))
+    with pytest.raises(ValueError, match="dirs"):
+        find_surface_fixed(sphere(), o, w[:2], torch.zeros(4, 16))
+
+
+def test_fractions_and_depths_as_sample_depths():
+    from dvr.march import depths_at, sample_depths, sample_fractions
+
+    near, far = torch.rand(50), 1.0 + torch.rand(50)
+    torch.manual_seed(1)
+    ref = sample_depths(near, far, 24, jitter=True)
+    torch.manual_seed(1)
+    t = sample_fractions(50, 24, True, near.device, near.dtype)
+    assert torch.equal(depths_at(near, far, t), ref) and t.shape == (50, 24)
+    assert torch.equal(t[:, 0], torch.zeros(50)) and torch.equal(t[:, -1], torch.ones(50))
