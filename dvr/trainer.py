@@ -131,8 +131,8 @@ class TrainConfig:
     jitter: bool = True
     """Jitter the marching samples while training."""
     cuda_graphs: bool = True
-    """On a GPU, replay each step's surface finding (march and secant) as a CUDA graph: the same surfaces, a fifth
-    of a default step's time less (no effect on CPU)."""
+    """On a GPU, replay each step's surface finding (march and secant) as a CUDA graph: the same surfaces, fewer
+    kernel launches (the cow's default training on an H100: 31.9 → 28.9 s); no effect on CPU."""
     lr_grid: float = 0.02
     """Adam learning rate of the grids and planes."""
     lr_mlp: float = 0.002
