@@ -2,7 +2,8 @@
 # The device check, one call on the GPU machine (bench/gpu.py's docstring says what runs where):
 #   here:  python bench/gpu.py prepare gpuw   (gpuw/ and .whl/ ignored through .git/info/exclude; .whl holds the
 #          wheels the GPU image lacks: tyro, docstring_parser, typeguard, trimesh, kornia, kornia_rs for cp312)
-#   there: bash bench/gpu_check.sh            (carry: gpuw, .whl; about 5 minutes) → $OUT: logs.tar (the CUDA
+#   there: bash bench/gpu_check.sh            (carry: gpuw, .whl; about 5 minutes, 3.5 at stop 45 without the four
+#          fast-preset captures) → $OUT: logs.tar (the CUDA
 #          tests', the graph's and the profile's logs, gpu.json, graph.json) and the trained models of the cow and
 #          DTU runs (tars; the quality cow's split in 15 MB parts, as a file comes back up to 16 MiB)
 #   here:  cat the parts, unpack the tars into gpuw/, then python bench/gpu.py evaluate gpuw
@@ -21,9 +22,10 @@ tail -3 logs/tests.log
 timeout 45 python3 bench/gpu.py graph gpuw > logs/graph.log 2>&1; tail -4 logs/graph.log
 # where a default step's time goes: launches and waits for the device
 timeout 45 python3 bench/gpu.py profile gpuw > logs/profile.log 2>&1; tail -2 logs/profile.log
-# the trainings, the default cow also without the graphs (the baseline on the same machine)
-timeout 230 python3 bench/gpu.py train gpuw cow:default cow:default:eager cow:quality dtu:default 2>&1 \
-  | tee logs/train.log
+# the trainings, the default cow also without the graphs (the baseline on the same machine), then the batch's four
+# captures (fast preset: bench/batch.py --gpu-train takes their mean)
+timeout 330 python3 bench/gpu.py train gpuw cow:default cow:default:eager cow:quality dtu:default torus_noise:fast \
+  torus_fine:fast torus_thick:fast torus_high:fast 2>&1 | tee logs/train.log
 cp gpuw/gpu.json gpuw/graph.json logs/ 2>/dev/null
 tar cf $OUT/logs.tar logs
 for r in cow_default cow_default_eager dtu_default cow_quality; do
