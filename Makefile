@@ -81,9 +81,10 @@ bench-quick: setup
 # Paths may hold spaces (IMAGES="photos of my vase"): they are quoted, and the default OUT is work/<folder name>.
 reconstruct: setup
 	@images="$(IMAGES)"; out="$(OUT)"; \
-	if [ -z "$$out" ] && [ -n "$$images" ]; then out="work/$$(basename "$$images")"; fi; \
+	if [ -z "$$out" ] && [ -n "$$images" ]; then name="$$(basename "$$images")"; \
+	  if [ -f "$$images" ]; then name="$${name%.*}"; fi; out="work/$$name"; fi; \
 	if [ -z "$$out" ] || { [ -z "$$images" ] && [ ! -f "$$out/cameras.npz" ]; }; then \
-	  echo "usage: make reconstruct IMAGES=photos [MASKS=dir] [CAMERAS=cameras.npz] [OUT=workspace] [CONFIG=file]"; \
+	  echo "usage: make reconstruct IMAGES=photos|clip.mp4 [MASKS=dir] [CAMERAS=cameras.npz] [OUT=workspace] [CONFIG=file]"; \
 	  exit 2; fi; \
 	$(PY) -m pipeline reconstruct "$$out" --config "$(CONFIG)" $(if $(IMAGES),--images "$(IMAGES)") \
 	  $(if $(MASKS),--masks-dir "$(MASKS)") $(if $(CAMERAS),--given-cameras "$(CAMERAS)") $(if $(FORCE),--force) $(ARGS)

@@ -46,6 +46,7 @@ from .photos import (
 from .pose_sanity import axes_convergence, model_views, pose_sanity
 from .sfm import RUNG_NAMES, ladder, model_stats, refine_model, retriangulate, run_rung, shortfalls, triangulate_at
 from .support import SupportPlane, find_support
+from .video import extract_frames, is_video
 from .workspace import Done, Job, StageError, Workspace
 
 
@@ -57,6 +58,9 @@ class CamerasConfig:
     """Longest image side SfM works on (photos are downscaled to it, never upscaled)."""
     max_side: int = 400
     """Longest side of the training images written to images/."""
+    video_frames: int = 48
+    """Frames taken from a video given instead of a photo folder (``--images clip.mp4``): the sharpest of each of
+    this many equal stretches of the clip, into frames/ (``pipeline/video.py``)."""
     matching: Literal["auto", "exhaustive", "sequential"] = "auto"
     """Pairs to match: 'auto' = exhaustive up to 80 images, sequential (with loop closure off) beyond."""
     start_rung: Literal["default", "guided", "dsp", "relaxed", "global", "merge"] = "default"
@@ -168,7 +172,7 @@ def list_photos(folder: Path) -> tuple[list[Path], list[str]]:
     """Readable photos (sorted) and warnings about the files skipped; several photos with one stem (IMG_1.jpg and
     IMG_1.heic) are an error, since every later stage names its files by stem."""
     if not folder.is_dir():
-        raise StageError(f"{folder}: not a folder of photos; pass --images DIR")
+        raise StageError(f"{folder}: not a folder of photos or a video; pass --images DIR (or a video file)")
     ok, skipped = [], []
     for p in sorted(folder.iterdir()):
         if not p.is_file() or p.name.startswith("."):
@@ -672,6 +676,11 @@ def run(job: Job) -> Done:
     printed board → images/, cameras.npz, points.ply, sfm/."""
     ws, cfg, images, given = job.ws, job.cfg, job.sources.images, job.sources.given_cameras
     ws.root.mkdir(parents=True, exist_ok=True)
+    if is_video(images):
+        clip = images
+        images = extract_frames(clip, ws.root / "frames", cfg.video_frames, cfg.max_side_sfm)
+        print(f"cameras: {len(list(images.glob('*.jpg')))} frames of {clip.name}, the sharpest of each equal stretch "
+              f"→ {images}")
     photos, skipped = list_photos(images)
     for s in skipped:
         print(f"warning: skipping {images / s.split(' (')[0]}: {s.split(' (', 1)[1][:-1]}", file=sys.stderr)

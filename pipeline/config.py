@@ -87,8 +87,9 @@ def load_config(path: str | Path | None) -> Config:
 
 
 POSITIVE = frozenset({
-    "cameras.max_side_sfm", "cameras.max_side", "cameras.max_features", "cameras.min_track_length",
-    "cameras.radius_margin", "cameras.board_square_mm", "cameras.board_marker_mm", "cameras.final_error_ratio",
+    "cameras.max_side_sfm", "cameras.max_side", "cameras.video_frames", "cameras.max_features",
+    "cameras.min_track_length", "cameras.radius_margin", "cameras.board_square_mm", "cameras.board_marker_mm",
+    "cameras.final_error_ratio",
     "masks.hull_res", "masks.stereo_scale", "masks.stereo_depths", "depth.min_track_length",
     "train.iterations", "train.batch_rays", "train.n_steps", "train.n_steps_final",
     "train.hull_res", "train.photo_hull_res", "train.frame_margin", "train.checkpoint_every", "train.log_every",

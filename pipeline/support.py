@@ -97,7 +97,23 @@ def _plausible(n: np.ndarray, d: float, near: np.ndarray, centers: np.ndarray, t
     if np.mean(centers @ n + d > 0) < min_cameras_above or not (0 < h_target < max_height * scale):
         return False
     around = near[np.linalg.norm(near - (target - h_target * n), axis=1) < scale]
-    return not (len(around) and np.mean(around @ n + d < -1.5 * tol) > max_below)
+    if not len(around):
+        return True
+    height = around @ n + d
+    radial = np.linalg.norm(around - (target - h_target * n) - np.outer(height, n), axis=1)
+    return np.mean(height < -_below_margin(height[radial > 0.5 * scale], tol)) <= max_below
+
+
+def _below_margin(far_height: np.ndarray, tol: float) -> float:
+    """How far below a plane a point must lie to count as below it: 1.5 ``tol``, or the plane's own noise where it
+    is larger — the 99th percentile of the distances within 5 ``tol`` of it of the points far out on it
+    (``far_height``: more than half the cameras' distance from the object's axis, where no object stands) — up to
+    3 ``tol``. A video's compressed frames triangulate a floor more loosely: the cow's clip put 1.01 % of its floor
+    points 1.5 ``tol`` below the floor's own fit, and a 1 % rule called the floor no support. A plane through an
+    object's own points has none far out (a cap of a ball: its curved points near the plane are no noise)."""
+    close = np.abs(far_height[np.abs(far_height) < 5 * tol])
+    noise = float(np.percentile(close, 99)) if len(close) >= 30 else 0.0
+    return min(max(1.5 * tol, noise), 3.0 * tol)
 
 
 def _ransac(near: np.ndarray, up: np.ndarray, tol: float, max_tilt_deg: float, iterations: int, seed: int,

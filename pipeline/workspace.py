@@ -182,7 +182,7 @@ class Sources:
     """Paths a user gives a run besides the workspace; read, never modified."""
 
     images: Path | None = None
-    """Folder of photos (stage ``cameras``)."""
+    """Folder of photos, or a video file (MP4, MOV, …: its sharpest frames are taken) (stage ``cameras``)."""
     masks_dir: Path | None = None
     """Folder of user masks named like the photos (stage ``masks``); automatic masks without it."""
     given_cameras: Path | None = None

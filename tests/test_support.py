@@ -55,6 +55,18 @@ def test_floor_under_the_object_is_found():
     assert np.all(pl.height(C) > 0)  # the normal points to the cameras
 
 
+def test_a_loosely_triangulated_floor_is_still_found():
+    """A video's compressed frames triangulate the floor loosely (heights spread 0.8 of the inlier tolerance: 3 % of
+    its points lie 1.5 tolerances below its fit, where a plane through an object may have 1 %); the floor's own
+    spread far from the object sets the margin, so it is found, while the ball alone still has no support."""
+    C, R = _ring()
+    target = np.array([0.0, 0.0, 0.5])
+    tol = 0.01 * float(np.median(np.linalg.norm(C - target, axis=1)))
+    pl = find_support(np.concatenate([_floor(noise=0.8 * tol), _ball()]), C, R, target)
+    assert pl is not None and abs(pl.normal @ [0, 0, 1]) > 0.999 and abs(pl.offset) < 0.01
+    assert find_support(_ball(2000), C, R, target) is None
+
+
 def test_shifted_and_tilted_frames_give_the_same_plane():
     C, R = _ring()
     pts = np.concatenate([_floor(), _ball()])

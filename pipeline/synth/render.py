@@ -203,8 +203,9 @@ def albedo_of(scene: Scene, pts: np.ndarray, uv: np.ndarray | None, tex: np.ndar
 def camera_rig(scene: Scene, heldout: bool = False):
     """K (N,3,3), R (N,3,3), centres (N,3) in the canonical frame; views looking at the origin.
 
-    Training views lie on a spiral (``rings: 0``) or on ``rings`` rings. Held-out views use the same layout at
-    fractional positions halfway between training views, so no held-out view repeats a training camera.
+    Training views lie on a spiral (``rings: 0``), on ``rings`` rings, or on a video's path (``orbit_turns``).
+    Held-out views use the same layout at fractional positions halfway between training views, so no held-out view
+    repeats a training camera.
     """
     rig = scene.cameras
     n = rig.heldout if heldout else rig.n_views
@@ -216,7 +217,11 @@ def camera_rig(scene: Scene, heldout: bool = False):
     lo, hi = rig.elevation
     nt = max(1, rig.n_views)
     for i in range(n):
-        if rig.rings > 0:  # k rings, views spread evenly around each
+        if rig.orbit_turns > 0:  # a video's frames: one path, held-out views halfway between two frames
+            x = math.floor((i + 0.5) * nt / n) + 0.5 if heldout else float(i)
+            az = 2 * math.pi * rig.orbit_turns * x / nt
+            el = math.radians(lo + (hi - lo) * x / max(1, nt - 1))
+        elif rig.rings > 0:  # k rings, views spread evenly around each
             ring = i % rig.rings
             per = math.ceil(nt / rig.rings)
             slot = float(i // rig.rings)

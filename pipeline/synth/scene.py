@@ -148,6 +148,9 @@ class CameraRig:
     """min/max elevation in degrees (views on a spiral)."""
     rings: int = 0
     """0: views on a spiral; k > 0: k rings of views at elevations evenly spaced over ``elevation``."""
+    orbit_turns: float = 0.0
+    """> 0: the views are the frames of a video, one continuous path (``rings`` ignored): this many turns around the
+    object while the elevation rises evenly from the first to the second of ``elevation``."""
     supersample: int = 1
     """odd k: k × k samples per pixel, box-filtered (anti-aliasing, as a real lens and sensor integrate)."""
     heldout: int = 0
