@@ -9,6 +9,7 @@ Inputs are never modified; everything is written inside the workspace.
 
 from __future__ import annotations
 
+import json
 import shutil
 import sys
 import time
@@ -676,11 +677,14 @@ def run(job: Job) -> Done:
     printed board → images/, cameras.npz, points.ply, sfm/."""
     ws, cfg, images, given = job.ws, job.cfg, job.sources.images, job.sources.given_cameras
     ws.root.mkdir(parents=True, exist_ok=True)
+    video = None
     if is_video(images):
         clip = images
         images = extract_frames(clip, ws.root / "frames", cfg.video_frames, cfg.max_side_sfm)
-        print(f"cameras: {len(list(images.glob('*.jpg')))} frames of {clip.name}, the sharpest of each equal stretch "
-              f"→ {images}")
+        record = json.loads((images / "frames.json").read_text())
+        video = {"clip": clip.name, "frames_in_clip": record["frames_in_clip"], "taken": len(record["chosen"])}
+        print(f"cameras: {video['taken']} of the {video['frames_in_clip']} frames of {clip.name}, the sharpest of each "
+              f"equal stretch → {images}")
     photos, skipped = list_photos(images)
     for s in skipped:
         print(f"warning: skipping {images / s.split(' (')[0]}: {s.split(' (', 1)[1][:-1]}", file=sys.stderr)
@@ -700,4 +704,6 @@ def run(job: Job) -> Done:
         except StageError as exc:  # SfM cannot pose them (a symmetric object): a printed board in view still can
             info = export_board_cameras(ws, photos, cfg, require_board_cameras(photos, cfg, exc), str(exc))
     print(f"cameras: {len(info['views'])} views → {ws.cameras}")
+    if video is not None:
+        info["video"] = video
     return Done({k: v for k, v in info.items() if k != "views"})

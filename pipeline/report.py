@@ -121,6 +121,11 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
 def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
     """SfM (the ladder's rungs) and the support plane, in words."""
     out = ["<h2>Cameras and support</h2><ul>"]
+    video = cameras_stamp.get("video")
+    if video:
+        out.append(f"<li>From the video {html.escape(video['clip'])}: {video['taken']} of its "
+                   f"{video['frames_in_clip']} frames, the sharpest of each equal stretch of it (frames/, "
+                   "frames/frames.json).</li>")
     if cameras_stamp.get("rungs"):
         steps = "; ".join(f"{r['rung']}: {r.get('registered', 0)} registered in {r['seconds']} s"
                           + (f", {len(r['dropped'])} views with wrong poses dropped" if r.get("dropped") else "")

@@ -15,11 +15,12 @@ from dvr.cameras import load_cameras
 from dvr.data import list_images
 from dvr.metrics import pose_errors
 from pipeline.config import load_config
+from pipeline.report import capture_section
 from pipeline.stages import run_stage
 from pipeline.synth import load_scene_file, write_scene
 from pipeline.synth.video import motion_blur, write_video
 from pipeline.video import choose_frames, extract_frames, sharpness
-from pipeline.workspace import StageError
+from pipeline.workspace import StageError, Workspace
 from tests.conftest import ROOT
 
 
@@ -114,6 +115,9 @@ def test_cameras_from_a_hand_held_clip(tmp_path):
     print(json.dumps({"frames": chosen, **err}))
     assert err["center_err_rel_max"] <= 0.01 and err["rot_err_deg_max"] < 1.0, err
     assert "ground_plane" in np.load(ws / "cameras.npz")  # the floor found from a clip as from photos
+    stamp = Workspace(ws).stamp("cameras")
+    assert stamp["video"] == {"clip": "my clip.mp4", "frames_in_clip": 36, "taken": 18}
+    assert "From the video my clip.mp4: 18 of its 36 frames" in capture_section(Workspace(ws), stamp)
     run_stage("masks", ws, cfg)  # and the masks leave it out: the frames' true masks
     ious = []
     for n, k in zip(names, chosen):
