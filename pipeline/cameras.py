@@ -9,7 +9,6 @@ Inputs are never modified; everything is written inside the workspace.
 
 from __future__ import annotations
 
-import json
 import shutil
 import sys
 import time
@@ -679,9 +678,8 @@ def run(job: Job) -> Done:
     ws.root.mkdir(parents=True, exist_ok=True)
     video = None
     if is_video(images):
-        clip = images
-        images = extract_frames(clip, ws.root / "frames", cfg.video_frames, cfg.max_side_sfm)
-        record = json.loads((images / "frames.json").read_text())
+        clip, images = images, ws.root / "frames"
+        record = extract_frames(clip, images, cfg.video_frames, cfg.max_side_sfm)
         video = {"clip": clip.name, "frames_in_clip": record["frames_in_clip"], "taken": len(record["chosen"])}
         print(f"cameras: {video['taken']} of the {video['frames_in_clip']} frames of {clip.name}, the sharpest of each "
               f"equal stretch → {images}")

@@ -53,9 +53,8 @@ def _open(video: Path) -> cv2.VideoCapture:
     return cap
 
 
-def _frames(video: Path):
-    """(index, BGR frame) of every frame of the clip, in order."""
-    cap = _open(video)
+def _frames(cap: cv2.VideoCapture):
+    """(index, BGR frame) of every frame of an opened clip, in order; the clip is released at the end."""
     try:
         k = 0
         while True:
@@ -68,30 +67,30 @@ def _frames(video: Path):
         cap.release()
 
 
-def extract_frames(video: Path, out: Path, n: int, max_side: int) -> Path:
+def extract_frames(video: Path, out: Path, n: int, max_side: int) -> dict:
     """Write the sharpest frame of each of ``n`` equal stretches of ``video`` into the folder ``out`` (replaced as a
-    whole, so a run cut short leaves no mix); returns ``out``."""
-    scores = np.array([sharpness(f) for _, f in _frames(video)])
+    whole, so a run cut short leaves no mix); returns the record written to ``out/frames.json`` (the clip, its frame
+    count, and per frame taken its file, index in the clip, time and sharpness)."""
+    cap = _open(video)
+    fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
+    scores = np.array([sharpness(f) for _, f in _frames(cap)])
     if len(scores) < 3:
         raise StageError(f"{video}: {len(scores)} frame(s) could be read; at least 3 are needed (a clip walking "
                          "once around the object is typical)")
     chosen = choose_frames(scores, n)
-    cap = _open(video)
-    fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
-    cap.release()
     tmp = out.with_name(out.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     wanted = dict(zip(chosen, range(len(chosen))))
-    record = []
-    for k, frame in _frames(video):
+    taken = []
+    for k, frame in _frames(_open(video)):
         if k in wanted:
             name = f"frame{wanted[k]:04d}.jpg"
             cv2.imwrite(str(tmp / name), downscale(frame, max_side), [cv2.IMWRITE_JPEG_QUALITY, 95])
-            record.append({"file": name, "frame": k, "seconds": round(k / fps, 3) if fps > 0 else None,
-                           "sharpness": round(float(scores[k]), 2)})
-    (tmp / "frames.json").write_text(json.dumps({"video": str(video), "frames_in_clip": int(len(scores)),
-                                                 "chosen": record}, indent=1))
+            taken.append({"file": name, "frame": k, "seconds": round(k / fps, 3) if fps > 0 else None,
+                          "sharpness": round(float(scores[k]), 2)})
+    record = {"video": str(video), "frames_in_clip": int(len(scores)), "chosen": taken}
+    (tmp / "frames.json").write_text(json.dumps(record, indent=1))
     shutil.rmtree(out, ignore_errors=True)
     tmp.rename(out)
-    return out
+    return record
