@@ -1,14 +1,15 @@
 """The cow on its floor filmed instead of photographed: a hand-held clip through every stage, measured.
 
-    python bench/video.py [--frames N] [--preset PRESET] [--clip-frames M] [--turns T]
+    python bench/video.py [--frames N] [--preset P] [--clip-frames M] [--turns T] [--codec C] [--portrait]
 
 The bench's cow (configs/scenes/cow_floor.yaml) rendered along one continuous path (``M`` frames, ``T`` turns
 while the camera rises from 15° to 55°, 4 held-out views halfway between frames), written as an MP4 with every
-third frame shaken (pipeline/synth/video.py), then ``cameras`` (taking ``N`` frames: pipeline/video.py), masks,
-depth, train, mesh and texture from the clip alone. Printed: frames registered, their pose error against the true
-cameras of the frames chosen, mask IoU against the frames' true masks, Chamfer and F-score against the true mesh,
-held-out PSNR at the held-out views' true poses brought into SfM's frame (the bench's ``psnr_gt_pose``), and the
-seconds of each stage.
+third frame shaken (pipeline/synth/video.py; ``--codec h264`` or ``hevc`` as phones record, ``--portrait``
+filmed with the phone held upright: frames of 300×400 stored turned, the clip tagged 90°), then ``cameras``
+(taking ``N`` frames: pipeline/video.py), masks, depth, train, mesh and texture from the clip alone. Printed:
+frames registered, their pose error against the true cameras of the frames chosen, mask IoU against the frames'
+true masks, Chamfer and F-score against the true mesh, held-out PSNR at the held-out views' true poses brought
+into SfM's frame (the bench's ``psnr_gt_pose``), and the seconds of each stage.
 """
 
 from __future__ import annotations
@@ -40,12 +41,17 @@ def main() -> None:
     ap.add_argument("--clip-frames", type=int, default=96, help="frames of the rendered clip")
     ap.add_argument("--turns", type=float, default=1.0, help="turns around the cow")
     ap.add_argument("--preset", default="default")
+    ap.add_argument("--codec", default="mp4v", help="mp4v, MJPG, h264 or hevc (pipeline/synth/video.py)")
+    ap.add_argument("--portrait", action="store_true", help="the phone held upright: 300×400 frames, tagged 90°")
     a = ap.parse_args()
-    over = {"cameras": {"n_views": a.clip_frames, "orbit_turns": a.turns, "rings": 0, "heldout": 4}}
+    over = {"cameras": {"n_views": a.clip_frames, "orbit_turns": a.turns, "rings": 0, "heldout": 4,
+                        **({"width": 300, "height": 400} if a.portrait else {})}}
     syn = ev.scene("cow", over)
-    work = ev.RUNS / "video" / f"cow_{a.clip_frames}_{a.turns:g}_{a.frames}_{a.preset}"
+    work = ev.RUNS / "video" / f"cow_{a.clip_frames}_{a.turns:g}_{a.frames}_{a.preset}_{a.codec}" \
+        f"{'_portrait' if a.portrait else ''}"
     shutil.rmtree(work, ignore_errors=True)
-    clip = write_video(syn / "images", work / "cow.mp4")
+    clip = write_video(syn / "images", work / ("cow.mov" if a.codec == "hevc" else "cow.avi" if a.codec == "MJPG"
+                                               else "cow.mp4"), codec=a.codec, rotation=90 if a.portrait else 0)
     ws = work / "ws"
     cfg = ev.config(a.preset, ["--cameras.video-frames", str(a.frames)])
     ev.stages(("cameras", "masks", "depth", "train", "mesh", "texture"), ws, cfg, images=clip)
@@ -67,7 +73,8 @@ def main() -> None:
     gt = trimesh.load(syn / "gt" / "mesh.ply")
     gt.apply_transform(np.block([[s * R, t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
     geo = chamfer_fscore(trimesh.load(ws / "mesh" / "clean.ply"), gt, n=50000)
-    row = {"clip_frames": a.clip_frames, "turns": a.turns, "frames_taken": len(chosen),
+    row = {"clip_frames": a.clip_frames, "turns": a.turns, "codec": a.codec, "portrait": a.portrait,
+           "frames_taken": len(chosen),
            "shaken_taken": len(shaken & set(chosen)), "registered": f"{len(names)}/{len(chosen)}",
            "rung": (Workspace(ws).stamp("cameras") or {}).get("rung"),
            "support": (Workspace(ws).stamp("cameras") or {}).get("support") is not None,

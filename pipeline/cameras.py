@@ -684,6 +684,8 @@ def run(job: Job) -> Done:
         print(f"cameras: {video['taken']} of the {video['frames_in_clip']} frames of {clip.name}, the sharpest of each "
               f"equal stretch → {images}")
     photos, skipped = list_photos(images)
+    if video is not None:  # the frames' own record is no skipped photo
+        skipped = [s for s in skipped if not s.startswith("frames.json ")]
     for s in skipped:
         print(f"warning: skipping {images / s.split(' (')[0]}: {s.split(' (', 1)[1][:-1]}", file=sys.stderr)
     if len(photos) < 3:
