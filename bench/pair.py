@@ -28,7 +28,7 @@ from bench import evaluate as ev  # noqa: E402
 from pipeline.workspace import Workspace  # noqa: E402
 
 PAIRS = ev.RUNS / "pairs"
-SHOWN = ("mask_iou", "psnr", "psnr_gt_pose", "psnr_reaimed", "reaim_deg", "chamfer_rel", "fscore")
+SHOWN = ("mask_iou", "psnr", "psnr_gain_fit", "psnr_gt_pose", "psnr_reaimed", "reaim_deg", "chamfer_rel", "fscore")
 
 
 def pair_folder(scene: str, over: dict) -> Path:

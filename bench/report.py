@@ -201,8 +201,20 @@ def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
                cow("exposure"), cow("exposure, appearance")),
               (appearance, "the plain cow (one exposure, no highlights)", cow(None, "default"),
                cow("appearance", "default")),
-              (appearance, "DTU scan24", base.get(("default", "dtu", "sfm")),
-               by.get(("default", "dtu", "sfm", "appearance")))]
+              (appearance, "DTU scan24", by.get(("default", "dtu", "sfm", "appearance off"),
+                                                base.get(("default", "dtu", "sfm"))),  # before stop 46: off
+               by.get(("default", "dtu", "sfm", "appearance"))),
+              ("per-view appearance, auto (the default since stop 46)",
+               "the cow photographed with exposure ±25 % and white balance ±8 %, from photos",
+               by.get(("default", "cow", "sfm", "exposure, appearance off")),
+               by.get(("default", "cow", "sfm", "exposure"))),
+              ("per-view appearance, auto (the default since stop 46)", looks + ", from photos",
+               by.get(("default", "cow", "sfm", "exposure+specular, appearance off")),
+               by.get(("default", "cow", "sfm", "exposure+specular"))),
+              ("the exposure measured and used (masks' stereo on evened photos, appearance auto; stop 46)",
+               looks + ", from photos, against neither",
+               by.get(("default", "cow", "sfm", "exposure+specular, no exposure handling")),
+               by.get(("default", "cow", "sfm", "exposure+specular")))]
     shading, gloss = "view shading in training", "the exposure + specular cow (`balanced` preset"
     pairs += [(shading, gloss + ", both without appearance)", cow("exposure+specular"),
                cow("exposure+specular, view shading")),

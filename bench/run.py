@@ -57,17 +57,25 @@ EXPOSURE = {"kind": "exposure", "amount": 0.25, "white_balance": 0.08}
 LOOKS = [EXPOSURE, {"kind": "specular", "amount": 0.25, "shininess": 30.0}]
 ABLATIONS = {
     "exposure+specular": ([], {"effects_add": LOOKS}),
-    "exposure+specular, appearance": (["--train.appearance"], {"effects_add": LOOKS}),
-    "exposure+specular, appearance + view shading": (["--train.appearance", "--train.view-shading"],
+    "exposure+specular, appearance": (["--train.appearance", "on"], {"effects_add": LOOKS}),
+    "exposure+specular, appearance + view shading": (["--train.appearance", "on", "--train.view-shading"],
                                                      {"effects_add": LOOKS}),
     # a reference on those held-out photos: the model of the plain cow (no exposure change, no highlights) measured
     # against them (same cameras)
     "exposure+specular held-out, effect-free training": ([], {"heldout_from": {"effects_add": LOOKS}}),
     "exposure": ([], {"effects_add": [EXPOSURE]}),  # what the per-view appearance is for, without highlights
-    "exposure, appearance": (["--train.appearance"], {"effects_add": [EXPOSURE]}),
-    "appearance": (["--train.appearance"], {}),  # the plain cow (nothing to fix) and DTU
+    "exposure, appearance": (["--train.appearance", "on"], {"effects_add": [EXPOSURE]}),
+    "appearance": (["--train.appearance", "on"], {}),  # the plain cow (nothing to fix) and DTU
+    # since stop 46 the default is "auto": on where the depth stage measures the photos' exposure differing (DTU, the
+    # exposure cow from photos), off without SfM points (every GT-camera row)
+    "appearance off": (["--train.appearance", "off"], {}),
+    "exposure, appearance off": (["--train.appearance", "off"], {"effects_add": [EXPOSURE]}),
+    "exposure+specular, appearance off": (["--train.appearance", "off"], {"effects_add": LOOKS}),
+    # from photos, nothing of stop 46's: the masks' stereo on the photos as taken, no per-view appearance
+    "exposure+specular, no exposure handling": (["--masks.no-even-exposure", "--train.appearance", "off"],
+                                                {"effects_add": LOOKS}),
     "view shading": (["--train.view-shading"], {}),
-    "appearance + view shading": (["--train.appearance", "--train.view-shading"], {}),
+    "appearance + view shading": (["--train.appearance", "on", "--train.view-shading"], {}),
     "exposure+specular, view shading": (["--train.view-shading"], {"effects_add": LOOKS}),
     "view selection": (["--texture.view-selection"], {}),  # the bake: one view per face, Potts smoothness
     "final adjustment": (["--cameras.final-passes", "3"], {}),  # SfM: final robust bundle adjustment passes
@@ -140,7 +148,12 @@ def plan(quick: bool) -> list[dict]:
     out += [{"scene": "cow", "cameras": "sfm", "preset": "balanced"}]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "default", "knob": "view selection", "ablation": True}]
     out += [{"scene": "dtu", "cameras": "sfm", "preset": "default", "knob": k, "ablation": True}
-            for k in ("appearance", "view selection", "appearance + view shading")]
+            for k in ("appearance off", "appearance", "view selection", "appearance + view shading")]
+    # the exposure cow from photos (stop 46): the default (masks on evened photos, appearance auto: on), with the
+    # appearance off, and the glossy cow also with neither
+    out += [{"scene": "cow", "cameras": "sfm", "preset": "default", "knob": k, "ablation": True}
+            for k in ("exposure", "exposure, appearance off", "exposure+specular", "exposure+specular, appearance off",
+                      "exposure+specular, no exposure handling")]
     out += [{"scene": s, "cameras": "sfm", "preset": "default", "knob": "final adjustment", "ablation": True}
             for s in (*FLOOR_SCENES, "cow_float", "dtu")]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "balanced", "knob": "final adjustment", "ablation": True}]
@@ -246,7 +259,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="fast + default on the cow with GT cameras (≤ 10 min)")
     ap.add_argument("--readme", action="store_true", help="write the tables and plot into README.md")
     ap.add_argument("--only", type=str, default=None,
-                    help="run only the specs whose scene (or cameras-table condition) contains this (debugging)")
+                    help="run only the specs whose scene, knob or cameras-table condition contains this")
     ap.add_argument("--photos", action="store_true",
                     help="run only the rows that run SfM: from photos (SfM cameras, automatic masks) and the "
                          "cameras table (with --update)")
@@ -267,7 +280,8 @@ def main() -> None:
     if a.one:
         run_child(json.loads(a.one))
         return
-    specs = [s for s in plan(a.quick) if (a.only is None or a.only in s["scene"] or a.only in s.get("condition", ""))
+    specs = [s for s in plan(a.quick) if (a.only is None or a.only in s["scene"] or a.only in s.get("condition", "")
+                                          or a.only in (s.get("knob") or ""))
              and (not a.photos or s.get("cameras") == "sfm" or s.get("kind") == "cameras")]
     results = run_all(specs, a.resume)
     out = ROOT / "bench" / "results"

@@ -11,6 +11,7 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -186,10 +187,16 @@ class TrainConfig:
     """Height above the support plane (working-sphere radii) where the object meets the floor or table: there a
     point is carved, and a mask-background ray's surface point pushed free, only when ≥ 2 views' masks say so
     (automatic masks are least sure at the contact line; one view missing it cut the bottom off a lying book)."""
-    appearance: bool = False
+    appearance: Literal["auto", "on", "off"] = "auto"
     """Fit a per-view colour transform (exposure and white balance: a gain per channel and view,
     see dvr/appearance.py) between the shared texture field and each photo; the fitted gains are written to
-    ``model/appearance.json`` and undone in the texture bake."""
+    ``model/appearance.json`` and undone in the texture bake. auto: on when the photos differ in exposure by
+    more than ``appearance_spread`` as the pipeline's cameras stage measured it on the SfM points' colours
+    (``exposure.json``, pipeline/exposure.py); off without that record (given cameras, or dvr alone)."""
+    appearance_spread: float = 0.05
+    """With ``appearance`` auto: the exposure spread (the 90th percentile over the photos of their largest
+    |log gain| against the average photo; 0.05 ≈ 5 %) above which the per-view appearance is on. Scenes
+    without exposure changes measure under 1 %, auto-exposed captures 10–30 %."""
     clipped_level: float = 0.98
     """With ``appearance`` or ``view_shading``: a photo channel at or above this level is over-exposed (clipped),
     and the RGB loss lets the rendered colour be brighter there (:func:`dvr.losses.rgb_loss`), so that a view
@@ -356,7 +363,10 @@ class Trainer:
                 vol = carve_along_rays(vol, o, d, data.depth_val - cfg.depth_free_margin,
                                        value=3.0)  # just free: −10 would pull the nearby surface inwards
             self.model.init_occupancy(vol)
-        self.appearance = ViewAppearance(data.images.shape[0]).to(self.device) if cfg.appearance else None
+        if cfg.appearance not in ("auto", "on", "off"):
+            raise ValueError(f"appearance must be 'auto', 'on' or 'off', got {cfg.appearance!r}")
+        on = cfg.appearance == "on"  # "auto" is decided before (pipeline/train.py); dvr alone has no measurement
+        self.appearance = ViewAppearance(data.images.shape[0]).to(self.device) if on else None
         self.shading = ViewShading().to(self.device) if cfg.view_shading else None
         grid_ids = {id(p) for p in self.model.grid_parameters()}
         groups = [

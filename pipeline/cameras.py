@@ -27,6 +27,7 @@ from dvr.cameras import (
     sphere_frame,
     transform_points,
 )
+from dvr.data import list_images
 
 from .board import board_support, spec_from_config, use_board
 from .board_poses import (
@@ -37,6 +38,7 @@ from .board_poses import (
     write_board_json,
     write_board_views,
 )
+from .exposure import measure_exposure, write_exposure
 from .photos import (
     PHOTO_EXTS,
     downscale,
@@ -44,7 +46,17 @@ from .photos import (
     read_photo,
 )
 from .pose_sanity import axes_convergence, model_views, pose_sanity
-from .sfm import RUNG_NAMES, ladder, model_stats, refine_model, retriangulate, run_rung, shortfalls, triangulate_at
+from .sfm import (
+    RUNG_NAMES,
+    ladder,
+    model_stats,
+    read_stage_model,
+    refine_model,
+    retriangulate,
+    run_rung,
+    shortfalls,
+    triangulate_at,
+)
 from .support import SupportPlane, find_support
 from .video import extract_frames, is_video
 from .workspace import Done, Job, StageError, Workspace
@@ -706,4 +718,21 @@ def run(job: Job) -> Done:
     print(f"cameras: {len(info['views'])} views → {ws.cameras}")
     if video is not None:
         info["video"] = video
+    spread = record_exposure(ws)
+    if spread is not None:
+        info["exposure_spread"] = round(spread, 4)
     return Done({k: v for k, v in info.items() if k != "views"})
+
+
+def record_exposure(ws: Workspace) -> float | None:
+    """The photos' per-view gains measured on the stage's SfM points → exposure.json (:mod:`pipeline.exposure`);
+    their spread, or None (and no file) without an SfM model (cameras from a board, or given without points)."""
+    ws.exposure.unlink(missing_ok=True)
+    model = ws.root / "sfm" / "undistorted" / "sparse"
+    if not model.exists():
+        return None
+    est = measure_exposure(read_stage_model(model), list_images(ws.images))
+    write_exposure(ws.exposure, est)
+    print(f"cameras: the photos' exposure differs by {100 * est.spread():.1f} % (SfM points' colours, 90th "
+          f"percentile of the photos against the average photo) → {ws.exposure}")
+    return est.spread()

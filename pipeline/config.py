@@ -54,6 +54,9 @@ def from_dict(cls, data: dict, where: str = ""):
             kw[k] = from_dict(tp, v, f"{where}{k}.")
         elif typing.get_origin(tp) is tuple and isinstance(v, list):
             kw[k] = tuple(v)
+        elif typing.get_origin(tp) is typing.Literal and isinstance(v, bool) and {"on", "off"} <= set(
+                typing.get_args(tp)):
+            kw[k] = "on" if v else "off"  # YAML 1.1 reads a bare on / off as true / false
         else:
             kw[k] = v
     return cls(**kw)

@@ -135,6 +135,10 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
                    "</li>")
     for note in cameras_stamp.get("final_adjustment") or []:  # SfM's final bundle adjustment passes
         out.append(f"<li>{html.escape(note[0].upper() + note[1:])}</li>")
+    spread = cameras_stamp.get("exposure_spread")
+    if spread is not None:
+        out.append(f"<li>The photos' exposure differs by {100 * spread:.1f} % (per-view gains measured on the SfM "
+                   "points' colours, exposure.json); the masks' stereo compares the photos evened out by them.</li>")
     board = cameras_stamp.get("board") or {}
     from_board = board.get("poses_from") == "board"
     if from_board:
@@ -170,11 +174,28 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
     return "".join(out) + "</ul>"
 
 
-def appearance_section(ws: Workspace) -> str:
-    """The per-view exposure and white balance fitted in training (``model/appearance.json``), as a table."""
-    path = ws.model / "appearance.json"
-    if not path.exists():
+def appearance_choice(ws: Workspace) -> str:
+    """Why the train stage turned the per-view appearance on or off when it was left to decide (``auto``), from
+    its stamp; "" when it was asked for (on, off) or the stage has not run."""
+    why = ((ws.stamp("train") or {}).get("appearance")) or {}
+    if not why.get("auto"):
         return ""
+    if why.get("spread") is None:
+        return ("Per-view appearance off (auto): no SfM points to measure the photos' exposure on (given "
+                "cameras); <code>--train.appearance on</code> turns it on.")
+    word = "on" if why.get("appearance") == "on" else "off"
+    return (f"Per-view appearance {word} (auto): the photos' exposure differs by {100 * why['spread']:.1f} % "
+            f"(measured on the SfM points' colours, <code>exposure.json</code>), "
+            f"{'above' if word == 'on' else 'within'} {100 * why.get('threshold', 0.05):.0f} %.")
+
+
+def appearance_section(ws: Workspace) -> str:
+    """The per-view exposure and white balance fitted in training (``model/appearance.json``), as a table; without
+    it, the auto decision that left it off (:func:`appearance_choice`)."""
+    path = ws.model / "appearance.json"
+    choice = appearance_choice(ws)
+    if not path.exists():
+        return f"<h2>Per-view appearance</h2><p>{choice}</p>" if choice else ""
     from .texture import read_appearance, relative_looks
     from .workspace import StageError
 
@@ -188,7 +209,8 @@ def appearance_section(ws: Workspace) -> str:
     rel = np.stack(list(rel_of.values()))
     rows = "".join(f"<tr><td>{html.escape(n)}</td>" + "".join(f"<td>{g:.3f}</td>" for g in r) + "</tr>"
                    for n, r in rel_of.items())
-    return (f"<h2>Per-view appearance</h2><p>Exposure and white balance fitted per photo: a gain per channel, "
+    return (f"<h2>Per-view appearance</h2><p>{choice + ' ' if choice else ''}"
+            f"Exposure and white balance fitted per photo: a gain per channel, "
             f"relative to the average view (the texture is baked from the photos with these undone). Relative "
             f"gains range {rel.min():.2f}–{rel.max():.2f}; the part common to all views, "
             f"{' / '.join(f'{c:.3f}' for c in common)} (R / G / B), stays in the texture.</p><table><tr><th>photo"

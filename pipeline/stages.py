@@ -92,14 +92,15 @@ def _mask_files(ws: Workspace) -> list[Path]:
 
 
 STAGES: tuple[Stage, ...] = (
-    Stage("cameras", "Estimate cameras with COLMAP (reads the photos; writes sfm/, images/, cameras.npz, points.ply).",
+    Stage("cameras", "Estimate cameras with COLMAP (reads the photos; writes sfm/, images/, cameras.npz, points.ply, "
+          "exposure.json).",
           cameras.run, cameras.CamerasConfig,
           requires=lambda ws: [],
           inputs=lambda ws, src: [p for p in (src.images, src.given_cameras) if p is not None],
           outputs=lambda ws: [ws.cameras, ws.images, ws.root / "points.ply"],
           sources=("images", "given_cameras"), from_photos=True, check=_photos_outside_workspace),
-    Stage("masks", "Object masks (reads images/, cameras.npz, sfm/; writes masks/*.png, masks/overlays/, "
-          "masks/confidence.json).", masks.run, masks.MasksConfig,
+    Stage("masks", "Object masks (reads images/, cameras.npz, sfm/, exposure.json; writes masks/*.png, "
+          "masks/overlays/, masks/confidence.json).", masks.run, masks.MasksConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.images, ws.cameras] + ([src.masks_dir] if src.masks_dir else []),
           outputs=_mask_files, sources=("masks_dir",), from_photos=True),
@@ -108,8 +109,8 @@ STAGES: tuple[Stage, ...] = (
           requires=lambda ws: [(ws.images, "cameras"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.cameras, ws.root / "sfm"],
           outputs=lambda ws: [ws.depth] if _sfm_model(ws).exists() else [], from_photos=True),
-    Stage("train", "Train the DVR occupancy and texture fields (reads images/, masks/, depth/, cameras.npz; writes "
-          "model/).", train.run, TrainConfig,
+    Stage("train", "Train the DVR occupancy and texture fields (reads images/, masks/, depth/, cameras.npz, "
+          "exposure.json; writes model/).", train.run, TrainConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.masks, "masks"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.images, ws.masks, ws.cameras] + ([ws.depth] if ws.depth.exists() else []),
           outputs=lambda ws: [ws.model / "final.pt"]),

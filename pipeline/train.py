@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
-from dvr.data import load_scene
+from dvr.data import list_images, load_scene
 from dvr.device import resolve_device
-from dvr.trainer import Trainer
+from dvr.trainer import TrainConfig, Trainer
 
-from .workspace import Done, Job, StageError, newest_mtime
+from .exposure import read_exposure
+from .workspace import Done, Job, StageError, Workspace, newest_mtime
 
 
 def _fresh_or_resume(job: Job) -> None:
@@ -41,6 +42,7 @@ def run(job: Job) -> Done | None:
     except (FileNotFoundError, ValueError) as exc:
         raise StageError(str(exc)) from exc
     _fresh_or_resume(job)
+    cfg, appearance = resolve_appearance(ws, cfg)
     t0 = time.perf_counter()
     trainer = Trainer(cfg, data, ws.model)
     try:
@@ -57,5 +59,28 @@ def run(job: Job) -> Done | None:
     print(f"train: {trainer.step} steps in {trainer.elapsed:.1f} s (setup {trainer.setup_seconds:.1f} s) → "
           f"{ws.model / 'final.pt'}")
     return Done({"wall": round(time.perf_counter() - t0, 3), "setup": round(trainer.setup_seconds, 3),
-                 "skipped": trainer.skipped, "device": trainer.device.type}, seconds=trainer.elapsed)
+                 "skipped": trainer.skipped, "device": trainer.device.type, "appearance": appearance},
+                seconds=trainer.elapsed)
+
+
+def resolve_appearance(ws: Workspace, cfg: TrainConfig) -> tuple[TrainConfig, dict]:
+    """``cfg`` with ``appearance`` "auto" decided: "on" when the photos' exposure spread that the cameras stage
+    measured (``exposure.json``) exceeds ``appearance_spread``, else "off"; and what the stamp records."""
+    if cfg.appearance != "auto":
+        return cfg, {"appearance": cfg.appearance, "auto": False}
+    if not ws.exposure.exists():
+        print("train: per-view appearance off (auto: no exposure measured, no SfM points; --train.appearance on "
+              "turns it on)")
+        return replace(cfg, appearance="off"), {"appearance": "off", "auto": True, "spread": None,
+                                                "threshold": cfg.appearance_spread}
+    try:
+        spread = read_exposure(ws.exposure, [p.stem for p in list_images(ws.images)]).spread()
+    except ValueError as exc:
+        raise StageError(str(exc)) from exc
+    on = spread > cfg.appearance_spread
+    print(f"train: per-view appearance {'on' if on else 'off'} (auto: the photos' exposure differs by "
+          f"{100 * spread:.1f} %, {'above' if on else 'within'} {100 * cfg.appearance_spread:.0f} %)")
+    return replace(cfg, appearance="on" if on else "off"), {"appearance": "on" if on else "off", "auto": True,
+                                                            "spread": round(spread, 4),
+                                                            "threshold": cfg.appearance_spread}
 

@@ -47,6 +47,11 @@ class Workspace:
         return self.root / "depth"
 
     @property
+    def exposure(self) -> Path:
+        """Per-view exposure gains measured on the SfM points by the cameras stage (pipeline/exposure.py)."""
+        return self.root / "exposure.json"
+
+    @property
     def cameras(self) -> Path:
         """Cameras of every image (IDR/DVR convention; docs/design.md, Conventions)."""
         return self.root / "cameras.npz"
@@ -249,8 +254,8 @@ def outputs_state(outputs: list[Path]) -> list[tuple]:
 
 def subset_workspace(full: Path, dst: Path, keep: list[int]) -> None:
     """A new workspace ``dst`` of views ``keep`` (indices into ``full``'s sorted images): their images, masks and
-    sparse depth, the cameras renumbered (scale_mat and the support plane kept) and the SfM points — to hold photos
-    out of training after SfM and the masks saw them all."""
+    sparse depth and exposure, the cameras renumbered (scale_mat and the support plane kept) and the SfM points — to
+    hold photos out of training after SfM and the masks saw them all."""
     import shutil
 
     import numpy as np
@@ -269,3 +274,7 @@ def subset_workspace(full: Path, dst: Path, keep: list[int]) -> None:
                                                     for k in ("world_mat", "scale_mat", "camera_mat")})
     if (Path(full) / "points.ply").exists():
         shutil.copy2(Path(full) / "points.ply", Path(dst) / "points.ply")
+    if Workspace(full).exposure.exists():  # the photos' gains, of the views kept
+        from .exposure import read_exposure, write_exposure
+
+        write_exposure(Workspace(dst).exposure, read_exposure(Workspace(full).exposure, [names[i] for i in keep]))

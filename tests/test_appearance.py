@@ -167,7 +167,7 @@ def fitted_gain_error(folder, albedo: dict, *options: str) -> tuple[float, float
                      effects=[{"kind": "exposure", "amount": 0.25, "white_balance": 0.08}])
     write_scene(sc, folder)
     args = ["train", str(folder), "--train.iterations", "400", "--train.no-progress", "--train.preview-every", "0",
-            "--train.appearance", *options]
+            "--train.appearance", "on", *options]
     assert main(args) == 0
     truth = json.loads((folder / "gt" / "exposure.json").read_text())["images"]
     fitted = json.loads((folder / "model" / "appearance.json").read_text())

@@ -156,3 +156,40 @@ def test_grabcut_runs_on_the_box_of_the_uncertain_pixels(camo, monkeypatch):
     assert not boxed[lab == cv2.GC_BGD].any()
     iou = lambda a, b: (a & b).sum() / (a | b).sum()  # noqa: E731
     assert iou(boxed, whole) > 0.98 and iou(boxed, g) > iou(whole, g) - 0.01
+
+
+def test_photos_evened_out_before_stereo_where_exposure_changes(tmp_path):
+    """The camouflage scene photographed with exposure ±25 % and white balance ±8 %: the stereo compares colours
+    across views, so from the photos as taken it finds a third less of the object than from the photos evened out
+    by their gains (``exposure.json``, :func:`pipeline.masks.evened_out`) — which find as much as the scene without
+    the effect; without the record, the photos go in as they are."""
+    import copy
+    import json
+
+    from pipeline.exposure import ExposureEstimate, write_exposure
+    from pipeline.masks import evened_out
+    from pipeline.workspace import Workspace
+
+    spec = copy.deepcopy(CAMO)
+    spec["effects"] = [{"kind": "exposure", "amount": 0.25, "white_balance": 0.08}]
+    syn = tmp_path / "synthetic"
+    write_scene(scene_from_dict(spec, ROOT), syn)
+    names = [p.stem for p in list_images(syn / "images")]
+    imgs = [cv2.imread(str(syn / "images" / f"{n}.png")) for n in names]
+    gt = np.stack([cv2.imread(str(syn / "masks" / f"{n}.png"), 0) > 127 for n in names])
+    cams = load_cameras(syn / "cameras.npz")
+    ws = Workspace(tmp_path / "ws")
+    ws.root.mkdir()
+    assert evened_out(ws, names, imgs) is imgs  # no record: as taken
+    truth = json.loads((syn / "gt" / "exposure.json").read_text())["images"]
+    log_g = np.log([truth[n] for n in names])
+    write_exposure(ws.exposure, ExposureEstimate(names, np.exp(log_g - log_g.mean(0)), np.full(len(names), 50)))
+    cover = {}
+    for evened in (False, True):
+        lab = np.stack(stereo_seed_labels(evened_out(ws, names, imgs) if evened else imgs, cams,
+                                          background_depths(cams, None, None, [""] * len(imgs))))
+        obj = lab == OBJECT
+        assert (obj & gt).sum() / obj.sum() >= 0.98
+        cover[evened] = (obj & gt).sum() / gt.sum()
+    print(cover)
+    assert cover[True] >= 0.35 and cover[False] < cover[True] - 0.08

@@ -133,6 +133,16 @@ def test_sparse_depth_matches_gt(photo_ws):
     assert len(rel) > 200 and np.median(rel) <= 0.01
 
 
+def test_photos_of_one_exposure_measure_no_spread(photo_ws):
+    """The cameras stage's exposure record (pipeline/exposure.py) of photos the generator took at one exposure: every
+    view measured, all within 1 % of the average (so ``--train.appearance auto`` stays off)."""
+    from pipeline.exposure import read_exposure
+
+    est = read_exposure(photo_ws[1] / "exposure.json")
+    assert len(est.names) == N_VIEWS and (est.points >= 20).all()
+    assert est.spread() < 0.01 and np.abs(np.log(est.gains)).max() < 0.02, est.gains
+
+
 def test_stages_are_idempotent(photo_ws, capsys):
     syn, ws = photo_ws
     assert main(["cameras", str(ws), "--images", str(syn / "images")]) == 0

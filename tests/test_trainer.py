@@ -12,7 +12,7 @@ from dvr.trainer import Trainer, load_model, train
 from tests.test_hard_cases import tiny_cfg
 
 
-@pytest.mark.parametrize("extras", [{}, {"appearance": True, "view_shading": True}])
+@pytest.mark.parametrize("extras", [{}, {"appearance": "on", "view_shading": True}])
 def test_resume_matches_uninterrupted(small_ws, tmp_path, extras):
     """A run killed after its checkpoint and resumed equals an uninterrupted one (field, and the per-view gains and
     view-shading MLP when they are on)."""
@@ -209,7 +209,7 @@ def test_loss_terms_are_named_after_their_weights(small_ws, tmp_path):
 
     from dvr.trainer import LossWeights
 
-    cfg = tiny_cfg(iterations=1, appearance=True, view_shading=True,
+    cfg = tiny_cfg(iterations=1, appearance="on", view_shading=True,
                    weights=LossWeights(tv=0.5, normal=0.3, appearance=2.0, shading=0.7))
     t = Trainer(cfg, load_scene(small_ws, torch.device("cpu")), tmp_path)
     total, stats = t.losses(0)
