@@ -72,6 +72,11 @@ class Stage:
         return self.name if self.options is not None else None
 
 
+def _if_there(path: Path) -> list[Path]:
+    """[path] when it exists (an optional input), else []."""
+    return [path] if path.exists() else []
+
+
 def _sfm_model(ws: Workspace) -> Path:
     """The undistorted SfM model the depth stage reads (none with given cameras that were not triangulated)."""
     return ws.root / "sfm" / "undistorted" / "sparse"
@@ -102,7 +107,8 @@ STAGES: tuple[Stage, ...] = (
     Stage("masks", "Object masks (reads images/, cameras.npz, sfm/, exposure.json; writes masks/*.png, "
           "masks/overlays/, masks/confidence.json).", masks.run, masks.MasksConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.cameras, "cameras")],
-          inputs=lambda ws, src: [ws.images, ws.cameras] + ([src.masks_dir] if src.masks_dir else []),
+          inputs=lambda ws, src: [ws.images, ws.cameras] + ([src.masks_dir] if src.masks_dir else [])
+          + _if_there(ws.exposure),
           outputs=_mask_files, sources=("masks_dir",), from_photos=True),
     Stage("depth", "Sparse depth from the SfM tracks (reads sfm/, cameras.npz; writes depth/*.npz).",
           depth.run, depth.DepthConfig,
@@ -112,7 +118,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("train", "Train the DVR occupancy and texture fields (reads images/, masks/, depth/, cameras.npz, "
           "exposure.json; writes model/).", train.run, TrainConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.masks, "masks"), (ws.cameras, "cameras")],
-          inputs=lambda ws, src: [ws.images, ws.masks, ws.cameras] + ([ws.depth] if ws.depth.exists() else []),
+          inputs=lambda ws, src: [ws.images, ws.masks, ws.cameras] + _if_there(ws.depth) + _if_there(ws.exposure),
           outputs=lambda ws: [ws.model / "final.pt"]),
     Stage("mesh", "Extract and clean the mesh (reads model/, points.ply, with --mesh.drop-unseen cameras.npz; writes "
           "mesh/raw.ply and mesh/clean.ply).",

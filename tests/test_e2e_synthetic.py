@@ -40,8 +40,9 @@ def test_torus_without_and_with_sparse_depth(torus_ws, tmp_path):
     no_depth = tmp_path / "nodepth"
     shutil.copytree(torus_ws, no_depth)
     shutil.rmtree(no_depth / "depth")
-    r0 = _reconstruct(no_depth)
-    r1 = _reconstruct(torus_ws)
+    steps = ("--train.iterations", "400")  # half the fast preset's: the torus is within 1 % in seconds
+    r0 = _reconstruct(no_depth, steps)
+    r1 = _reconstruct(torus_ws, steps)
     print(json.dumps({"no_depth": r0, "depth": r1}))
     assert r0["chamfer_rel"] <= 0.02
     assert r1["chamfer_rel"] <= 0.02
