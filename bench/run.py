@@ -66,7 +66,7 @@ ABLATIONS = {
     "exposure": ([], {"effects_add": [EXPOSURE]}),  # what the per-view appearance is for, without highlights
     "exposure, appearance": (["--train.appearance", "on"], {"effects_add": [EXPOSURE]}),
     "appearance": (["--train.appearance", "on"], {}),  # the plain cow (nothing to fix) and DTU
-    # since stop 46 the default is "auto": on where the depth stage measures the photos' exposure differing (DTU, the
+    # since stop 46 the default is "auto": on where the cameras stage measures the photos' exposure differing (DTU, the
     # exposure cow from photos), off without SfM points (every GT-camera row)
     "appearance off": (["--train.appearance", "off"], {}),
     "exposure, appearance off": (["--train.appearance", "off"], {"effects_add": [EXPOSURE]}),

@@ -728,10 +728,9 @@ def record_exposure(ws: Workspace) -> float | None:
     """The photos' per-view gains measured on the stage's SfM points → exposure.json (:mod:`pipeline.exposure`);
     their spread, or None (and no file) without an SfM model (cameras from a board, or given without points)."""
     ws.exposure.unlink(missing_ok=True)
-    model = ws.root / "sfm" / "undistorted" / "sparse"
-    if not model.exists():
+    if not ws.sfm_model.exists():
         return None
-    est = measure_exposure(read_stage_model(model), list_images(ws.images))
+    est = measure_exposure(read_stage_model(ws.sfm_model), list_images(ws.images))
     write_exposure(ws.exposure, est)
     print(f"cameras: the photos' exposure differs by {100 * est.spread():.1f} % (SfM points' colours, 90th "
           f"percentile of the photos against the average photo) → {ws.exposure}")

@@ -58,7 +58,7 @@ def run(job: Job) -> Done:
     """Stage ``depth`` (called by :func:`pipeline.stages.run_stage`): per view, the SfM points it observes with
     their distance from the camera → depth/<view>.npz (nothing without an SfM model: given cameras)."""
     ws, cfg = job.ws, job.cfg
-    model = ws.root / "sfm" / "undistorted" / "sparse"
+    model = ws.sfm_model
     paths = list_images(ws.images)
     if ws.depth.exists():
         shutil.rmtree(ws.depth)

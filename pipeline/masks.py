@@ -168,7 +168,7 @@ def _tracks(ws: Workspace, names: list[str], max_error_ratio: float = 0.0):
     """Sparse points (SfM frame) and, per image, the ids of the points it observes (None without sfm/); with
     ``max_error_ratio`` > 0 only the observations that reproject within that multiple of the model's mean
     reprojection error (a wrong match lets a view "observe" a backdrop point that lies behind the object)."""
-    model = ws.root / "sfm" / "undistorted" / "sparse"
+    model = ws.sfm_model
     if not model.exists():
         return None, None
     rec = read_stage_model(model)

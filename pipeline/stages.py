@@ -77,11 +77,6 @@ def _if_there(path: Path) -> list[Path]:
     return [path] if path.exists() else []
 
 
-def _sfm_model(ws: Workspace) -> Path:
-    """The undistorted SfM model the depth stage reads (none with given cameras that were not triangulated)."""
-    return ws.root / "sfm" / "undistorted" / "sparse"
-
-
 def _photos_outside_workspace(ws: Workspace, src: Sources) -> None:
     """The cameras stage needs photos, and a workspace that is neither the photo folder nor inside it."""
     if src.images is None:
@@ -114,7 +109,7 @@ STAGES: tuple[Stage, ...] = (
           depth.run, depth.DepthConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.cameras, ws.root / "sfm"],
-          outputs=lambda ws: [ws.depth] if _sfm_model(ws).exists() else [], from_photos=True),
+          outputs=lambda ws: [ws.depth] if ws.sfm_model.exists() else [], from_photos=True),
     Stage("train", "Train the DVR occupancy and texture fields (reads images/, masks/, depth/, cameras.npz, "
           "exposure.json; writes model/).", train.run, TrainConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.masks, "masks"), (ws.cameras, "cameras")],

@@ -47,6 +47,12 @@ class Workspace:
         return self.root / "depth"
 
     @property
+    def sfm_model(self) -> Path:
+        """The cameras stage's undistorted SfM model (none with given cameras that were not triangulated, or poses
+        from a board)."""
+        return self.root / "sfm" / "undistorted" / "sparse"
+
+    @property
     def exposure(self) -> Path:
         """Per-view exposure gains measured on the SfM points by the cameras stage (pipeline/exposure.py)."""
         return self.root / "exposure.json"
