@@ -30,15 +30,17 @@ node_modules/.installed: package.json
 	npm install --no-audit --no-fund
 	touch $@
 
-# lint (ruff: pyflakes, pycodestyle, import order, bugbear; pyproject.toml) then every test
+# lint (ruff: pyflakes, pycodestyle, import order, bugbear; pyproject.toml) then every test, in two pytest-xdist
+# workers (a test file stays in one worker, so its fixtures are built once; tests/conftest.py gives each worker one
+# thread of the 2 cores)
 lint: setup
 	$(PY) -m ruff check .
 
 test: lint
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 test-fast: setup
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow"
 
 # a printable ChArUco board for metric scale (A4, 300 dpi): make board [BOARD=board.png]
 BOARD ?= board.png

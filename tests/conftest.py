@@ -1,6 +1,8 @@
+import os
 import sys
 from pathlib import Path
 
+import cv2
 import pytest
 import torch
 
@@ -8,7 +10,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 SHARED = ROOT.parent / "shared" / "data"
 
-torch.set_num_threads(2)
+# The suite runs on 2 cores in two pytest-xdist workers (Makefile's `make test`): one thread each for torch, OpenCV
+# and the processes a test starts, so the workers share the cores rather than fight over them; 2 threads without it.
+THREADS = max(1, 2 // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+os.environ["OMP_NUM_THREADS"] = str(THREADS)
+torch.set_num_threads(THREADS)
+cv2.setNumThreads(THREADS)
 
 
 @pytest.fixture(autouse=True)
