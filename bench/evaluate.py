@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -201,32 +202,33 @@ def true_cameras_of(gtc, hc) -> dict[str, tuple]:
     return {**{f"{i:06d}": (gtc, i) for i in range(len(gtc))}, **{f"{HELDOUT}{i:06d}": (hc, i) for i in range(len(hc))}}
 
 
-def heldout_psnrs(tm, tex, held: list[Path], masks: Path, names: list[str], est, hc,
-                  sim: tuple) -> tuple[list[float], list[float]]:
+class HeldoutPsnrs(NamedTuple):
+    """Per held-out photo of a photos-only run (:func:`heldout_psnrs`)."""
+    at_sfm: list[float]  # at the poses SfM gave the photos it registered
+    at_sfm_gain_fit: list[float]  # the same renders after fitting each photo's own colour gains (image_psnr)
+    at_true: list[float]  # at every photo's true pose brought into SfM's frame
+
+
+def heldout_psnrs(tm, tex, held: list[Path], masks: Path, names: list[str], est, hc, sim: tuple) -> HeldoutPsnrs:
     """PSNR of a photos-only run's textured mesh at its held-out photos ``held`` (their masks in ``masks``): at the
-    poses SfM gave those it registered (``est``, names ``names``), and at every one's true pose (``hc``) brought
-    into SfM's frame by ``sim`` = (s, R, t), with SfM's mean focal length."""
+    poses SfM gave those it registered (``est``, names ``names``), raw and with the photo's own colour gains fitted
+    (what the texture scores apart from the photo's exposure, which no model can know), and at every one's true pose
+    (``hc``) brought into SfM's frame by ``sim`` = (s, R, t), with SfM's mean focal length."""
+    from pipeline.texture import render_textured
+
     s, R, t = sim
-    at_sfm, at_true = [], []
+    out = HeldoutPsnrs([], [], [])
     for i, p in enumerate(held):
-        k = names.index(f"{HELDOUT}{p.stem}") if f"{HELDOUT}{p.stem}" in names else None
         photo, gm = _read_rgb(p), _read_mask(masks / p.name)
-        if k is not None:  # at the pose SfM gave the held-out photo
-            at_sfm.append(render_psnr(tm, tex, est.K[k], est.R[k], est.sfm_centers[k], photo, gm))
-        at_true.append(render_psnr(tm, tex, est.K.mean(0), hc.R[i] @ R.T, s * R @ hc.sfm_centers[i] + t, photo, gm))
-    return at_sfm, at_true
-
-
-def heldout_psnrs_gain_fit(tm, tex, held: list[Path], masks: Path, names: list[str], est) -> list[float]:
-    """PSNR of a photos-only run's textured mesh at the held-out photos SfM registered, at SfM's poses, after
-    fitting each photo's own colour gains (:func:`image_psnr`): what the texture scores apart from the photo's
-    exposure, which no model can know."""
-    out = []
-    for p in held:
-        if f"{HELDOUT}{p.stem}" in names:
+        h, w = photo.shape[:2]
+        if f"{HELDOUT}{p.stem}" in names:  # at the pose SfM gave the held-out photo: one render, both figures
             k = names.index(f"{HELDOUT}{p.stem}")
-            out.append(render_psnr(tm, tex, est.K[k], est.R[k], est.sfm_centers[k], _read_rgb(p),
-                                   _read_mask(masks / p.name), gain_fit=True))
+            img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, est.K[k], est.R[k],
+                                       est.sfm_centers[k], w, h)
+            out.at_sfm.append(image_psnr(img, hit, photo, gm))
+            out.at_sfm_gain_fit.append(image_psnr(img, hit, photo, gm, gain_fit=True))
+        out.at_true.append(render_psnr(tm, tex, est.K.mean(0), hc.R[i] @ R.T, s * R @ hc.sfm_centers[i] + t, photo,
+                                       gm))
     return out
 
 
@@ -284,11 +286,11 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
         train_mesh_texture(ws, spec["preset"], cli_over)
         secs = {**Workspace(full).seconds(), **Workspace(ws).seconds()}
         tm, tex = textured(ws)
-        psnr, psnr_gt = heldout_psnrs(tm, tex, held, syn / "gt" / "heldout" / "masks", names, est, hc, (s, R, t))
-        extra["psnr_gt_pose"] = float(np.mean(psnr_gt))
-        fitted = heldout_psnrs_gain_fit(tm, tex, held, syn / "gt" / "heldout" / "masks", names, est)
-        if fitted:
-            extra["psnr_gain_fit"] = float(np.mean(fitted))
+        psnrs = heldout_psnrs(tm, tex, held, syn / "gt" / "heldout" / "masks", names, est, hc, (s, R, t))
+        psnr = psnrs.at_sfm
+        extra["psnr_gt_pose"] = float(np.mean(psnrs.at_true))
+        if psnrs.at_sfm_gain_fit:
+            extra["psnr_gain_fit"] = float(np.mean(psnrs.at_sfm_gain_fit))
         at = {n: k for k, n in enumerate(names)}
         extra.update(reaimed_psnrs(tm, tex, [
             (est.K[k], est.R[k], est.sfm_centers[k], p, syn / "gt" / "heldout" / "masks" / p.name)

@@ -64,9 +64,10 @@ class Truth:
 def heldout_psnr(ws: Path, syn: Path, truth: Truth) -> tuple[list[float], list[float]]:
     """Held-out PSNR of the textured mesh at SfM's poses and at the true poses, per held-out photo."""
     tm, tex = ev.textured(ws)
-    return ev.heldout_psnrs(tm, tex, sorted((syn / "gt" / "heldout" / "images").glob("*.png")),
-                            syn / "gt" / "heldout" / "masks", truth.names, truth.est, truth.held,
-                            (truth.s, truth.R, truth.t))
+    psnrs = ev.heldout_psnrs(tm, tex, sorted((syn / "gt" / "heldout" / "images").glob("*.png")),
+                             syn / "gt" / "heldout" / "masks", truth.names, truth.est, truth.held,
+                             (truth.s, truth.R, truth.t))
+    return psnrs.at_sfm, psnrs.at_true
 
 
 def swap(part: str, arm_ws: Path, ws: Path, syn: Path, truth: Truth) -> None:

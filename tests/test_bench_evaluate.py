@@ -65,3 +65,35 @@ def test_reaimed_heldout_figure_turns_each_view_onto_its_photo(tmp_path):
     got = reaimed_psnrs(tm, tex, [(K, np.eye(3), centre, tmp_path / "p.png", tmp_path / "m.png")])
     raw = render_psnr(tm, tex, K, np.eye(3), centre, _read_rgb(tmp_path / "p.png"), _read_mask(tmp_path / "m.png"))
     assert got["psnr_reaimed"] > raw + 10 and abs(got["reaim_deg"] - 0.3) < 0.03
+
+
+def test_heldout_figures_of_a_photos_only_run(tmp_path):
+    """bench/evaluate.py heldout_psnrs: one render per registered held-out photo gives the raw and the gain-fitted
+    figure (a photo taken 30 % darker scores high only fitted); a photo SfM did not register counts only at its
+    true pose."""
+    from types import SimpleNamespace
+
+    import cv2
+
+    from bench.evaluate import HELDOUT, heldout_psnrs
+    from pipeline.texture import TexturedCaster
+    from tests.test_bench_reaim import H, K, W, textured_ball
+
+    tm, tex = textured_ball(seed=3)
+    centres = np.array([[0.0, 0.0, -4.0], [0.3, 0.0, -4.0]])
+    caster = TexturedCaster(tm.vertices, tm.faces, tm.visual.uv, tex)
+    (tmp_path / "masks").mkdir()
+    held = []
+    for i, c in enumerate(centres):
+        photo, mask = caster.render(K, np.eye(3), c, W, H)
+        held.append(tmp_path / f"{i:06d}.png")
+        cv2.imwrite(str(held[-1]), (np.clip(0.7 * photo, 0, 1) * 255).round().astype(np.uint8)[..., ::-1])
+        cv2.imwrite(str(tmp_path / "masks" / held[-1].name), mask.astype(np.uint8) * 255)
+    est = SimpleNamespace(K=np.stack([K, K]), R=np.stack([np.eye(3)] * 2), sfm_centers=centres)
+    names = ["000000", f"{HELDOUT}000000"]  # SfM registered the first held-out photo only (as its 2nd view)
+    est.sfm_centers = np.stack([centres[1], centres[0]])
+    got = heldout_psnrs(tm, tex, held, tmp_path / "masks", names, est, SimpleNamespace(R=est.R, sfm_centers=centres),
+                        (1.0, np.eye(3), np.zeros(3)))
+    assert len(got.at_sfm) == len(got.at_sfm_gain_fit) == 1 and len(got.at_true) == 2
+    assert got.at_sfm[0] < 20.0 < 35.0 < got.at_sfm_gain_fit[0]
+    assert max(got.at_true) < 20.0  # raw at the true poses too
