@@ -96,30 +96,39 @@ def dtu_heldout(n: int) -> list[int]:
     return [i for i in range(n) if i % 7 == 0]
 
 
-def photos_folder(syn: Path, out: Path) -> Path:
-    """A user's folder: the scene's training photos and its held-out photos (prefixed ``heldout_``)."""
+def photos_folder(syn: Path, out: Path, jpeg_quality: int | None = None) -> Path:
+    """A user's folder: the scene's training photos and its held-out photos (prefixed ``heldout_``); as the PNG
+    renders, or with ``jpeg_quality`` as JPEGs of that quality (4:2:0 chroma, as cameras and phones save them)."""
+    import cv2
+
+    from pipeline.synth.phone import save_jpeg
+
     out.mkdir(parents=True)
-    for p in sorted((syn / "images").glob("*.png")):
-        shutil.copy2(p, out / p.name)
-    for p in sorted((syn / "gt" / "heldout" / "images").glob("*.png")):
-        shutil.copy2(p, out / f"{HELDOUT}{p.name}")
+    photos = [(p, p.stem) for p in sorted((syn / "images").glob("*.png"))]
+    photos += [(p, f"{HELDOUT}{p.stem}") for p in sorted((syn / "gt" / "heldout" / "images").glob("*.png"))]
+    for p, stem in photos:
+        if jpeg_quality is None:
+            shutil.copy2(p, out / f"{stem}.png")
+        else:
+            save_jpeg(cv2.imread(str(p), cv2.IMREAD_COLOR), out / f"{stem}.jpg", quality=jpeg_quality)
     return out
 
 
 def mask_iou(ws: Path, gt_masks: dict[str, Path]) -> float:
     """Mean IoU of a workspace's masks against GT masks (by stem; undistortion may crop ≤ 1 px)."""
+    ious = [view_mask_iou(ws / "masks" / f"{stem}.png", gp) for stem, gp in gt_masks.items()
+            if (ws / "masks" / f"{stem}.png").exists()]
+    return float(np.mean(ious)) if ious else float("nan")
+
+
+def view_mask_iou(mask: Path, gt: Path) -> float:
+    """IoU of one mask file against its GT mask (the GT cropped to the mask's size)."""
     import cv2
 
-    ious = []
-    for stem, gp in gt_masks.items():
-        mp = ws / "masks" / f"{stem}.png"
-        if not mp.exists():
-            continue
-        a = cv2.imread(str(mp), 0) > 127
-        b = cv2.imread(str(gp), 0) > 127
-        b = b[: a.shape[0], : a.shape[1]]
-        ious.append((a & b).sum() / max(1, (a | b).sum()))
-    return float(np.mean(ious)) if ious else float("nan")
+    a = cv2.imread(str(mask), 0) > 127
+    b = cv2.imread(str(gt), 0) > 127
+    b = b[: a.shape[0], : a.shape[1]]
+    return float((a & b).sum() / max(1, (a | b).sum()))
 
 
 def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray, gain_fit: bool = False) -> float:
@@ -241,7 +250,8 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
     from pipeline.workspace import Workspace
 
     cli_over, over = knobs.get(spec.get("knob"), ([], {}))
-    syn = scene(spec["scene"], {k: v for k, v in over.items() if k != "heldout_from"})
+    # besides the scene's own overrides: "heldout_from" (below) and "photos_jpeg" (the photos saved as JPEGs)
+    syn = scene(spec["scene"], {k: v for k, v in over.items() if k not in ("heldout_from", "photos_jpeg")})
     # "heldout_from": measure against the held-out photos of the scene with these overrides (same cameras)
     ref = scene(spec["scene"], over["heldout_from"]) if "heldout_from" in over else syn
     gtc, hc = load_cameras(syn / "cameras.npz"), load_cameras(ref / "gt" / "heldout" / "cameras.npz")
@@ -265,7 +275,7 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
     else:
         full = work / "all"
         stages(("cameras", "masks", "depth"), full, config(spec["preset"], photo_stage_options(cli_over)),
-               images=photos_folder(syn, work / "photos"))
+               images=photos_folder(syn, work / "photos", over.get("photos_jpeg")))
         from dvr.data import list_images
 
         names = [p.stem for p in list_images(full / "images")]

@@ -84,6 +84,8 @@ ABLATIONS = {
     # a capture that looks into the cup: the top ring at 80° instead of 55°
     "views to 80°": ([], {"cameras": {"elevation": [15, 80]}}),
     "views to 80°, photo hull": (["--train.photo-hull"], {"cameras": {"elevation": [15, 80]}}),
+    # the photos saved as a phone saves them (JPEG, quality 92, 4:2:0 chroma) instead of the lossless renders
+    "photos as JPEG": ([], {"photos_jpeg": 92}),
 }
 
 
@@ -156,6 +158,7 @@ def plan(quick: bool) -> list[dict]:
                       "exposure+specular, no exposure handling")]
     out += [{"scene": s, "cameras": "sfm", "preset": "default", "knob": "final adjustment", "ablation": True}
             for s in (*FLOOR_SCENES, "cow_float", "dtu")]
+    out += [{"scene": "cow", "cameras": "sfm", "preset": "default", "knob": "photos as JPEG", "ablation": True}]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "balanced", "knob": "final adjustment", "ablation": True}]
     out += [{"scene": "mug", "cameras": c, "preset": "default", "knob": "photo hull", "ablation": True}
             for c in ("gt", "sfm")]

@@ -97,3 +97,30 @@ def test_heldout_figures_of_a_photos_only_run(tmp_path):
     assert len(got.at_sfm) == len(got.at_sfm_gain_fit) == 1 and len(got.at_true) == 2
     assert got.at_sfm[0] < 20.0 < 35.0 < got.at_sfm_gain_fit[0]
     assert max(got.at_true) < 20.0  # raw at the true poses too
+
+
+def test_photos_folder_as_the_renders_or_as_a_phones_jpegs(tmp_path):
+    """bench/evaluate.py photos_folder: the training and held-out renders (held-out ones prefixed) copied as PNG, or
+    saved as JPEGs of the quality asked (lossy: close to the render, not equal)."""
+    import cv2
+
+    from bench.evaluate import HELDOUT, photos_folder
+
+    syn = tmp_path / "syn"
+    (syn / "images").mkdir(parents=True)
+    (syn / "gt" / "heldout" / "images").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    renders = {}
+    for kind, d, stem in (("images", syn / "images", "000000"), ("images", syn / "images", "000001"),
+                          ("held", syn / "gt" / "heldout" / "images", "000000")):
+        img = cv2.GaussianBlur(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8), (0, 0), 1.5)
+        cv2.imwrite(str(d / f"{stem}.png"), img)
+        renders[(kind, stem)] = img
+    png = photos_folder(syn, tmp_path / "png")
+    assert sorted(p.name for p in png.iterdir()) == ["000000.png", "000001.png", f"{HELDOUT}000000.png"]
+    assert (cv2.imread(str(png / "000001.png")) == renders[("images", "000001")]).all()
+    jpg = photos_folder(syn, tmp_path / "jpg", jpeg_quality=92)
+    assert sorted(p.name for p in jpg.iterdir()) == ["000000.jpg", "000001.jpg", f"{HELDOUT}000000.jpg"]
+    got = cv2.imread(str(jpg / f"{HELDOUT}000000.jpg")).astype(float)
+    err = np.abs(got - renders[("held", "000000")]).mean()
+    assert 0.0 < err < 4.0
