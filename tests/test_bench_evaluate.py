@@ -89,9 +89,8 @@ def test_heldout_figures_of_a_photos_only_run(tmp_path):
         held.append(tmp_path / f"{i:06d}.png")
         cv2.imwrite(str(held[-1]), (np.clip(0.7 * photo, 0, 1) * 255).round().astype(np.uint8)[..., ::-1])
         cv2.imwrite(str(tmp_path / "masks" / held[-1].name), mask.astype(np.uint8) * 255)
-    est = SimpleNamespace(K=np.stack([K, K]), R=np.stack([np.eye(3)] * 2), sfm_centers=centres)
-    names = ["000000", f"{HELDOUT}000000"]  # SfM registered the first held-out photo only (as its 2nd view)
-    est.sfm_centers = np.stack([centres[1], centres[0]])
+    names = ["000000", f"{HELDOUT}000000"]  # SfM registered the first held-out photo only, as its 2nd view
+    est = SimpleNamespace(K=np.stack([K, K]), R=np.stack([np.eye(3)] * 2), sfm_centers=centres[::-1].copy())
     got = heldout_psnrs(tm, tex, held, tmp_path / "masks", names, est, SimpleNamespace(R=est.R, sfm_centers=centres),
                         (1.0, np.eye(3), np.zeros(3)))
     assert len(got.at_sfm) == len(got.at_sfm_gain_fit) == 1 and len(got.at_true) == 2
