@@ -141,6 +141,15 @@ def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray, gain
     return image_psnr(img, hit, photo, mask, gain_fit)
 
 
+def render_psnrs(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """:func:`render_psnr` raw and with the photo's own colour gains fitted, from one render."""
+    from pipeline.texture import render_textured
+
+    h, w = photo.shape[:2]
+    img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, R, centre, w, h)
+    return image_psnr(img, hit, photo, mask), image_psnr(img, hit, photo, mask, gain_fit=True)
+
+
 def reaimed_psnrs(tm, tex, views: list[tuple]) -> dict:
     """The held-out figure with each view re-aimed (:mod:`bench.reaim`): mean PSNR and mean degrees turned over
     ``views`` = (K, R, centre, photo path, mask path)."""
@@ -223,19 +232,15 @@ def heldout_psnrs(tm, tex, held: list[Path], masks: Path, names: list[str], est,
     poses SfM gave those it registered (``est``, names ``names``), raw and with the photo's own colour gains fitted
     (what the texture scores apart from the photo's exposure, which no model can know), and at every one's true pose
     (``hc``) brought into SfM's frame by ``sim`` = (s, R, t), with SfM's mean focal length."""
-    from pipeline.texture import render_textured
-
     s, R, t = sim
     out = HeldoutPsnrs([], [], [])
     for i, p in enumerate(held):
         photo, gm = _read_rgb(p), _read_mask(masks / p.name)
-        h, w = photo.shape[:2]
         if f"{HELDOUT}{p.stem}" in names:  # at the pose SfM gave the held-out photo: one render, both figures
             k = names.index(f"{HELDOUT}{p.stem}")
-            img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, est.K[k], est.R[k],
-                                       est.sfm_centers[k], w, h)
-            out.at_sfm.append(image_psnr(img, hit, photo, gm))
-            out.at_sfm_gain_fit.append(image_psnr(img, hit, photo, gm, gain_fit=True))
+            raw, fitted = render_psnrs(tm, tex, est.K[k], est.R[k], est.sfm_centers[k], photo, gm)
+            out.at_sfm.append(raw)
+            out.at_sfm_gain_fit.append(fitted)
         out.at_true.append(render_psnr(tm, tex, est.K.mean(0), hc.R[i] @ R.T, s * R @ hc.sfm_centers[i] + t, photo,
                                        gm))
     return out
@@ -264,12 +269,10 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
         secs = Workspace(ws).seconds()
         s, R, t = 1.0, np.eye(3), np.zeros(3)
         tm, tex = textured(ws)
-        psnr = [render_psnr(tm, tex, hc.K[i], hc.R[i], hc.sfm_centers[i], _read_rgb(p),
-                            _read_mask(ref / "gt" / "heldout" / "masks" / p.name)) for i, p in enumerate(held)]
-        extra["psnr_gain_fit"] = float(np.mean([
-            render_psnr(tm, tex, hc.K[i], hc.R[i], hc.sfm_centers[i], _read_rgb(p),
-                        _read_mask(ref / "gt" / "heldout" / "masks" / p.name), gain_fit=True)
-            for i, p in enumerate(held)]))
+        both = [render_psnrs(tm, tex, hc.K[i], hc.R[i], hc.sfm_centers[i], _read_rgb(p),
+                             _read_mask(ref / "gt" / "heldout" / "masks" / p.name)) for i, p in enumerate(held)]
+        psnr = [raw for raw, _ in both]
+        extra["psnr_gain_fit"] = float(np.mean([fitted for _, fitted in both]))
         extra.update(reaimed_psnrs(tm, tex, [(hc.K[i], hc.R[i], hc.sfm_centers[i], p,
                                               ref / "gt" / "heldout" / "masks" / p.name) for i, p in enumerate(held)]))
     else:
