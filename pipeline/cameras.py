@@ -732,6 +732,7 @@ def record_exposure(ws: Workspace) -> float | None:
         return None
     est = measure_exposure(read_stage_model(ws.sfm_model), list_images(ws.images))
     write_exposure(ws.exposure, est)
-    print(f"cameras: the photos' exposure differs by {100 * est.spread():.1f} % (SfM points' colours, 90th "
+    spread = est.spread()
+    print(f"cameras: the photos' exposure differs by {100 * spread:.1f} % (SfM points' colours, 90th "
           f"percentile of the photos against the average photo) → {ws.exposure}")
-    return est.spread()
+    return spread

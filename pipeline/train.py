@@ -78,9 +78,9 @@ def resolve_appearance(ws: Workspace, cfg: TrainConfig) -> tuple[TrainConfig, di
     except ValueError as exc:
         raise StageError(str(exc)) from exc
     on = spread > cfg.appearance_spread
-    print(f"train: per-view appearance {'on' if on else 'off'} (auto: the photos' exposure differs by "
+    choice = "on" if on else "off"
+    print(f"train: per-view appearance {choice} (auto: the photos' exposure differs by "
           f"{100 * spread:.1f} %, {'above' if on else 'within'} {100 * cfg.appearance_spread:.0f} %)")
-    return replace(cfg, appearance="on" if on else "off"), {"appearance": "on" if on else "off", "auto": True,
-                                                            "spread": round(spread, 4),
-                                                            "threshold": cfg.appearance_spread}
+    return replace(cfg, appearance=choice), {"appearance": choice, "auto": True, "spread": round(spread, 4),
+                                             "threshold": cfg.appearance_spread}
 
