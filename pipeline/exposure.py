@@ -25,6 +25,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .workspace import StageError
+
 DARK, BRIGHT = 0.04, 0.96
 """Observations with a channel outside (DARK, BRIGHT) are left out: noise below, clipping above."""
 
@@ -145,14 +147,14 @@ def write_exposure(path: Path, est: ExposureEstimate) -> None:
 
 def read_exposure(path: Path, names: list[str] | None = None) -> ExposureEstimate:
     """The estimate :func:`write_exposure` wrote, for the photos ``names`` (all of them when None; one the file
-    lacks counts as unmeasured); ValueError naming the file when it is not one."""
+    lacks counts as unmeasured); a :class:`StageError` naming the file and the fix when it is not one."""
     try:
         views = json.loads(path.read_text())["views"]
         names = list(views) if names is None else names
         gains = np.array([views[n]["gain"] if n in views else [1.0, 1.0, 1.0] for n in names], float).reshape(-1, 3)
         points = np.array([views[n]["points"] if n in views else 0 for n in names], int)
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{path}: not an exposure record ({exc}); run the cameras stage again (--force)") from exc
+        raise StageError(f"{path}: not an exposure record ({exc}); run the cameras stage again (--force)") from exc
     if not (np.isfinite(gains).all() and gains.min() > 0):
-        raise ValueError(f"{path}: gains must be finite and positive; run the cameras stage again (--force)")
+        raise StageError(f"{path}: gains must be finite and positive; run the cameras stage again (--force)")
     return ExposureEstimate(names, gains, points)

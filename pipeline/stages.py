@@ -97,7 +97,8 @@ STAGES: tuple[Stage, ...] = (
           cameras.run, cameras.CamerasConfig,
           requires=lambda ws: [],
           inputs=lambda ws, src: [p for p in (src.images, src.given_cameras) if p is not None],
-          outputs=lambda ws: [ws.cameras, ws.images, ws.root / "points.ply"],
+          outputs=lambda ws: [ws.cameras, ws.images, ws.root / "points.ply"]
+          + ([ws.exposure] if ws.sfm_model.exists() else []),  # measured on the SfM points
           sources=("images", "given_cameras"), from_photos=True, check=_photos_outside_workspace),
     Stage("masks", "Object masks (reads images/, cameras.npz, sfm/, exposure.json; writes masks/*.png, "
           "masks/overlays/, masks/confidence.json).", masks.run, masks.MasksConfig,

@@ -73,10 +73,7 @@ def resolve_appearance(ws: Workspace, cfg: TrainConfig) -> tuple[TrainConfig, di
               "turns it on)")
         return replace(cfg, appearance="off"), {"appearance": "off", "auto": True, "spread": None,
                                                 "threshold": cfg.appearance_spread}
-    try:
-        spread = read_exposure(ws.exposure, [p.stem for p in list_images(ws.images)]).spread()
-    except ValueError as exc:
-        raise StageError(str(exc)) from exc
+    spread = read_exposure(ws.exposure, [p.stem for p in list_images(ws.images)]).spread()
     on = spread > cfg.appearance_spread
     choice = "on" if on else "off"
     print(f"train: per-view appearance {choice} (auto: the photos' exposure differs by "

@@ -17,7 +17,7 @@ from pipeline.report import capture_section
 from pipeline.stages import run_stage
 from pipeline.synth import scene_from_dict, write_scene
 from pipeline.train import resolve_appearance
-from pipeline.workspace import Workspace
+from pipeline.workspace import StageError, Workspace
 from tests.conftest import ROOT
 
 
@@ -82,10 +82,10 @@ def test_spread_and_the_record(tmp_path):
     some = read_exposure(tmp_path / "exposure.json", ["000009", "elsewhere"])  # a photo it lacks: unmeasured
     assert np.allclose(some.gains[0], gains[9], atol=1e-5) and some.points.tolist() == [50, 0]
     (tmp_path / "broken.json").write_text('{"views": {"a": {"gain": [1, -1, 1], "points": 3}}}')
-    with pytest.raises(ValueError, match="broken.json: gains must be finite and positive"):
+    with pytest.raises(StageError, match="broken.json: gains must be finite and positive"):
         read_exposure(tmp_path / "broken.json")
     (tmp_path / "broken.json").write_text("[1, 2")
-    with pytest.raises(ValueError, match="broken.json: not an exposure record"):
+    with pytest.raises(StageError, match="broken.json: not an exposure record"):
         read_exposure(tmp_path / "broken.json")
 
 

@@ -143,6 +143,16 @@ def test_photos_of_one_exposure_measure_no_spread(photo_ws):
     assert est.spread() < 0.01 and np.abs(np.log(est.gains)).max() < 0.02, est.gains
 
 
+def test_exposure_record_is_a_cameras_output(photo_ws):
+    """exposure.json is one of the cameras stage's outputs (with an SfM model): a workspace that lost it is not up to
+    date, and a failed run that rewrote it is not rolled back as if nothing changed."""
+    from pipeline.stages import stage_named
+    from pipeline.workspace import Workspace
+
+    ws = Workspace(photo_ws[1])
+    assert ws.exposure.exists() and ws.exposure in stage_named("cameras").outputs(ws)
+
+
 def test_stages_are_idempotent(photo_ws, capsys):
     syn, ws = photo_ws
     assert main(["cameras", str(ws), "--images", str(syn / "images")]) == 0
