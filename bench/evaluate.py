@@ -97,15 +97,17 @@ def dtu_heldout(n: int) -> list[int]:
 
 
 def photos_folder(syn: Path, out: Path, jpeg_quality: int | None = None) -> Path:
-    """A user's folder: the scene's training photos and its held-out photos (prefixed ``heldout_``); as the PNG
-    renders, or with ``jpeg_quality`` as JPEGs of that quality (4:2:0 chroma, as cameras and phones save them)."""
+    """A user's folder: the scene's training photos and its held-out photos (prefixed ``heldout_``; those of a
+    scene with ``photo_scale`` > 1 at the photos' size); as the PNG renders, or with ``jpeg_quality`` as JPEGs of that
+    quality (4:2:0 chroma, as cameras and phones save them)."""
     import cv2
 
     from pipeline.synth.phone import save_jpeg
 
     out.mkdir(parents=True)
     photos = [(p, p.stem) for p in sorted((syn / "images").glob("*.png"))]
-    photos += [(p, f"{HELDOUT}{p.stem}") for p in sorted((syn / "gt" / "heldout" / "images").glob("*.png"))]
+    held = syn / "gt" / "heldout" / ("photos" if (syn / "gt" / "heldout" / "photos").is_dir() else "images")
+    photos += [(p, f"{HELDOUT}{p.stem}") for p in sorted(held.glob("*.png"))]
     for p, stem in photos:
         if jpeg_quality is None:
             shutil.copy2(p, out / f"{stem}.png")
@@ -262,6 +264,8 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
     gtc, hc = load_cameras(syn / "cameras.npz"), load_cameras(ref / "gt" / "heldout" / "cameras.npz")
     held = sorted((ref / "gt" / "heldout" / "images").glob("*.png"))
     extra: dict = {}
+    if spec["cameras"] == "gt" and over.get("cameras", {}).get("photo_scale", 1) > 1:
+        raise ValueError(f"{spec}: photos larger than the ground truth (photo_scale) only go through the cameras stage")
     if spec["cameras"] == "gt":
         ws = work / "ws"
         shutil.copytree(syn, ws, ignore=shutil.ignore_patterns("gt", "depth"))

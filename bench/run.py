@@ -86,6 +86,10 @@ ABLATIONS = {
     "views to 80°, photo hull": (["--train.photo-hull"], {"cameras": {"elevation": [15, 80]}}),
     # the photos saved as a phone saves them (JPEG, quality 92, 4:2:0 chroma) instead of the lossless renders
     "photos as JPEG": ([], {"photos_jpeg": 92}),
+    # as a phone's: 3 × the working size (1200 × 900, each stage pixel the mean of 3 × 3 photo pixels), the SfM on
+    # them as they are, the other stages on them shrunk; lossless, and as JPEGs
+    "photos 3× larger": ([], {"cameras": {"photo_scale": 3}}),
+    "photos 3× larger as JPEG": ([], {"cameras": {"photo_scale": 3}, "photos_jpeg": 92}),
 }
 
 
@@ -158,7 +162,8 @@ def plan(quick: bool) -> list[dict]:
                       "exposure+specular, no exposure handling")]
     out += [{"scene": s, "cameras": "sfm", "preset": "default", "knob": "final adjustment", "ablation": True}
             for s in (*FLOOR_SCENES, "cow_float", "dtu")]
-    out += [{"scene": "cow", "cameras": "sfm", "preset": "default", "knob": "photos as JPEG", "ablation": True}]
+    out += [{"scene": "cow", "cameras": "sfm", "preset": "default", "knob": k, "ablation": True}
+            for k in ("photos as JPEG", "photos 3× larger", "photos 3× larger as JPEG")]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "balanced", "knob": "final adjustment", "ablation": True}]
     out += [{"scene": "mug", "cameras": c, "preset": "default", "knob": "photo hull", "ablation": True}
             for c in ("gt", "sfm")]

@@ -167,6 +167,31 @@ def test_supersampling_is_listed_and_antialiases(tmp_path):
         write_scene(small_scene(cameras={"supersample": 2}), tmp_path / "c")
 
 
+def test_photo_scale_stores_larger_photos_of_the_same_views(tmp_path):
+    """photo_scale: 3 stores the photos at 3 × the size (training and held-out, as a phone's sensor), and the ground
+    truth stays at the working size: a photo shrunk by 3 × 3 box means is the scene rendered with supersample 3
+    (to 8-bit rounding), masks and depth are the same, and the held-out reference is the shrunk photo."""
+    over = {"albedo": {"kind": "checker", "scale": 4.0}, "cameras": {"supersample": 3, "heldout": 1}}
+    ref = write_scene(small_scene(**over), tmp_path / "ref")
+    big = write_scene(small_scene(**{**over, "cameras": {"heldout": 1, "photo_scale": 3}}), tmp_path / "big")
+    assert "photo_scale:3" in big["passes"] and not any(p.startswith("photo_scale") for p in ref["passes"])
+    photo, want = _img(tmp_path / "big"), _img(tmp_path / "ref")
+    assert photo.shape == (192, 192, 3) and want.shape == (64, 64, 3)
+    assert np.abs(photo.reshape(64, 3, 64, 3, 3).mean(axis=(1, 3)) - want).max() <= 1.01 / 255
+    for f in ("masks/000000.png", "gt/depth/000000.npy", "gt/heldout/masks/000000.png"):
+        x, y = tmp_path / "ref" / f, tmp_path / "big" / f
+        assert np.array_equal(*(np.load(z) if f.endswith(".npy") else cv2.imread(str(z), 0) for z in (x, y))), f
+    held = cv2.imread(str(tmp_path / "big" / "gt" / "heldout" / "photos" / "000000.png")) / 255.0
+    held_gt = cv2.imread(str(tmp_path / "big" / "gt" / "heldout" / "images" / "000000.png")) / 255.0
+    assert held.shape == (192, 192, 3) and held_gt.shape == (64, 64, 3)
+    assert np.abs(held.reshape(64, 3, 64, 3, 3).mean(axis=(1, 3)) - held_gt).max() <= 1.01 / 255
+    with pytest.raises(ValueError, match="photo_scale must be an odd"):
+        write_scene(small_scene(cameras={"photo_scale": 2}), tmp_path / "even")
+    with pytest.raises(ValueError, match="photo_scale > 1 does not go with the distortion"):
+        write_scene(small_scene(cameras={"photo_scale": 3}, effects=[{"kind": "distortion", "k1": 0.1}]),
+                    tmp_path / "dist")
+
+
 def test_heldout_views_lie_between_training_views(tmp_path):
     from pipeline.synth.render import camera_rig
 

@@ -327,7 +327,7 @@ def pixel_samples(H: int, W: int, ss: int) -> tuple[np.ndarray, np.ndarray]:
     """Homogeneous pixel coordinates of ss × ss samples per pixel (H·ss·W·ss, 3), and which sample is the
     pixel centre (masks and depth come from it)."""
     if ss < 1 or ss % 2 == 0:
-        raise ValueError(f"cameras.supersample must be an odd number ≥ 1, got {ss}")
+        raise ValueError(f"cameras.supersample × cameras.photo_scale must be an odd number ≥ 1, got {ss}")
     sub = (np.arange(ss) + 0.5) / ss
     jj = (np.arange(W)[None, None, :, None] + sub[None, None, None, :]) * np.ones((H, ss, W, ss))
     ii = (np.arange(H)[:, None, None, None] + sub[None, :, None, None]) * np.ones((H, ss, W, ss))
@@ -359,13 +359,13 @@ def image_effects(img: np.ndarray, listed: dict, rng: np.random.Generator) -> tu
 def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: list[str], view_seed: int = 0,
                  ground_z: float | None = None):
     """Render views: images (N,H,W,3) float, masks (N,H,W) bool, depth (N,H,W) canonical ray depth, exposure gains
-    (N,3).
+    (N,3); the images at ``cameras.photo_scale`` × (H, W) (each of their pixels ``supersample``² samples).
 
     With a ``ground`` effect, ``ground_z`` is the height of its plane (canonical frame): rays that reach it before
     the object see the ground, and masks and depth are the object's alone."""
     rig = scene.cameras
-    H, W, ss = rig.height, rig.width, int(rig.supersample)
-    pix, centre = pixel_samples(H, W, ss)
+    H, W, ss, ps = rig.height, rig.width, int(rig.supersample), int(rig.photo_scale)
+    pix, centre = pixel_samples(H, W, ss * ps)
     rng = np.random.default_rng(scene.cameras.seed + 1000 * view_seed)
     listed = {e.kind: e for e in scene.effects}
     ground = listed.get("ground")
@@ -395,7 +395,7 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
                                            occlusion)
         rest = ~hit & ~on_ground
         img[rest] = background_colour(scene, o[rest], d[rest])
-        img = img.reshape(H, ss, W, ss, 3).mean(axis=(1, 3))  # box filter over the pixel
+        img = img.reshape(H * ps, ss, W * ps, ss, 3).mean(axis=(1, 3))  # box filter over the photo's pixel
         hit, depth = hit[centre], depth[centre]
         img, g = image_effects(img, listed, rng)
         imgs.append(img)
@@ -412,7 +412,8 @@ EFFECTS = ("noise", "exposure", "distortion", "blur", "specular", "ground")
 def _list_passes(scene: Scene, passes: list[str], ss: int, need_normals: bool) -> None:
     """Append the passes a scene computed (what tests check: nothing it does not list)."""
     light = scene.lighting.kind != "none"
-    for name, on in [(f"supersample:{ss}", ss > 1), ("normals", need_normals),
+    for name, on in [(f"supersample:{ss}", ss > 1), (f"photo_scale:{scene.cameras.photo_scale}",
+                                                       scene.cameras.photo_scale > 1), ("normals", need_normals),
                      (f"lighting:{scene.lighting.kind}", light),
                      (f"background:{scene.background.kind}", scene.background.kind != "none")]:
         if on and name not in passes:
@@ -447,12 +448,13 @@ def _write_png(path: Path, img: np.ndarray) -> None:
     cv2.imwrite(str(path), img)
 
 
-def _write_views(imgs, masks, depths, img_dir: Path, mask_dir: Path | None, depth_dir: Path | None) -> None:
+def _write_views(imgs, masks, depths, img_dir: Path | None, mask_dir: Path | None, depth_dir: Path | None) -> None:
     """View i as ``<i:06d>.png`` in ``img_dir``, its mask in ``mask_dir`` and its depth (``.npy``, float32) in
     ``depth_dir`` (each folder only when given)."""
     for i in range(len(imgs)):
         name = f"{i:06d}"
-        _write_png(img_dir / f"{name}.png", imgs[i])
+        if img_dir is not None:
+            _write_png(img_dir / f"{name}.png", imgs[i])
         if mask_dir is not None:
             _write_png(mask_dir / f"{name}.png", (masks[i] * 255).astype(np.uint8))
         if depth_dir is not None:
@@ -510,21 +512,34 @@ def write_scene(scene: Scene, out: str | Path) -> dict:
         (out / sub).mkdir(parents=True, exist_ok=True)
     listed = {e.kind: e for e in scene.effects}
     dist = listed.get("distortion")
+    ps = int(scene.cameras.photo_scale)
+    if ps > 1 and dist is not None and dist.k1 != 0.0:
+        raise ValueError("cameras.photo_scale > 1 does not go with the distortion effect (its masks are distorted at "
+                         "the photos' size); use one of them")
     mesh = gt_mesh(scene, mesh_shape)
     ground = listed.get("ground")
     ground_z, plane = _ground_plane(ground, mesh, s, off)
 
     exposure: dict[str, dict] = {}  # per image folder, per view: the exposure gains the photo was rendered with
 
-    def one_set(K, R, C, img_dir: Path, mask_dir: Path | None, cam_path: Path, depth_dir: Path | None, seed: int):
-        """Render, distort and write one set of views (training or held-out) with its cameras."""
+    def one_set(K, R, C, img_dir: Path, mask_dir: Path | None, cam_path: Path, depth_dir: Path | None, seed: int,
+                photo_dir: Path | None = None):
+        """Render, distort and write one set of views (training or held-out) with its cameras; with a photo_scale
+        > 1 the photos go to ``photo_dir`` (``img_dir`` when None) and ``img_dir`` gets them box-filtered to the
+        ground truth's size when that differs."""
         imgs, masks, depths, gains = render_views(scene, K, R, C, mesh_shape, passes, seed, ground_z)
+        if ps > 1:
+            photo_dir = photo_dir or img_dir
+            photo_dir.mkdir(parents=True, exist_ok=True)
+            _write_views(imgs, masks, depths, photo_dir, None, None)
+            n, h, w = masks.shape
+            imgs = imgs.reshape(n, h, ps, w, ps, 3).mean(axis=(2, 4))
         exposure[img_dir.relative_to(out).as_posix()] = {f"{i:06d}": [round(float(x), 6) for x in g]
                                                          for i, g in enumerate(gains)}
         if dist is not None and dist.k1 != 0.0:
             imgs, masks = distort(imgs, masks, K[0], dist.k1)
         save_cameras(cam_path, K, R, -np.einsum("nij,nj->ni", R, s * C + off), scale_mat, plane)  # world frame
-        _write_views(imgs, masks, depths, img_dir, mask_dir, depth_dir)
+        _write_views(imgs, masks, depths, None if img_dir == photo_dir else img_dir, mask_dir, depth_dir)
         return imgs, masks, depths
 
     K, R, C = camera_rig(scene)
@@ -542,7 +557,7 @@ def write_scene(scene: Scene, out: str | Path) -> dict:
     Kh, Rh, Ch = camera_rig(scene, heldout=True)
     if len(Kh):
         one_set(Kh, Rh, Ch, out / "gt/heldout/images", out / "gt/heldout/masks", out / "gt/heldout/cameras.npz",
-                None, 1)
+                None, 1, out / "gt/heldout/photos")
     mesh.apply_transform(scale_mat)
     mesh.export(out / "gt" / "mesh.ply")
     meta = {"scene": asdict(scene), "passes": passes, "seconds": round(time.perf_counter() - t0, 3),

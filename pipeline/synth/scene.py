@@ -153,6 +153,11 @@ class CameraRig:
     object while the elevation rises evenly from the first to the second of ``elevation``."""
     supersample: int = 1
     """odd k: k × k samples per pixel, box-filtered (anti-aliasing, as a real lens and sensor integrate)."""
+    photo_scale: int = 1
+    """odd k: the photos are stored at k × (width, height), as a phone's sensor has many more pixels than the
+    stages' working size (``images/``, and the held-out views' in ``gt/heldout/photos/``); the ground truth
+    (cameras, masks, depth, ``gt/heldout/images/``) stays at (width, height), each of its pixels the mean of k × k
+    photo pixels. For runs from photos (the cameras stage shrinks them); not with ``distortion``."""
     heldout: int = 0
     """extra views (between the training views) written to gt/heldout for evaluation."""
     seed: int = 0
