@@ -46,6 +46,9 @@ class Rung:
     guided: bool = False
     relaxed: bool = False
     mapper: str = "incremental"
+    max_h_inlier_ratio: float = 0.8
+    """COLMAP's two-view verification: a pair whose homography explains more than this fraction of its epipolar
+    inliers is "planar", and then keeps the homography's inliers when they are more (:data:`PLANAR_RATIO`)."""
 
     @property
     def features_key(self) -> str:
@@ -55,7 +58,7 @@ class Rung:
     @property
     def matches_key(self) -> str:
         """Name of the match database this rung matches into (rungs with the same matches share it)."""
-        return f"{self.features_key}{'-guided' if self.guided else ''}"
+        return f"{self.features_key}{'-guided' if self.guided else ''}-h{self.max_h_inlier_ratio:g}"
 
 
 LADDER = (
@@ -68,9 +71,10 @@ LADDER = (
 )
 
 
-def ladder(start: str, stop: str, max_features: int = 8192) -> list[Rung]:
+def ladder(start: str, stop: str, max_features: int = 8192, max_h_inlier_ratio: float = 0.8) -> list[Rung]:
     """The rungs from ``start`` to ``stop`` (names of :data:`RUNG_NAMES`), in order; the first rung extracts
-    ``max_features`` features, the others at least twice that and 16 k."""
+    ``max_features`` features, the others at least twice that and 16 k; every rung verifies its matches with
+    ``max_h_inlier_ratio`` (:class:`Rung`)."""
     for name in (start, stop):
         if name not in RUNG_NAMES:
             raise ValueError(f"unknown SfM rung '{name}' (one of {', '.join(RUNG_NAMES)})")
@@ -80,7 +84,8 @@ def ladder(start: str, stop: str, max_features: int = 8192) -> list[Rung]:
     if j < i:
         raise ValueError(f"the last SfM rung '{stop}' comes before the first '{start}'")
     more = max(16384, 2 * max_features)
-    return [replace(r, max_features=max_features if r.name == "default" else more) for r in LADDER[i : j + 1]]
+    return [replace(r, max_features=max_features if r.name == "default" else more,
+                    max_h_inlier_ratio=max_h_inlier_ratio) for r in LADDER[i : j + 1]]
 
 
 # ----------------------------------------------------------------------------- one rung (child process)
@@ -103,7 +108,7 @@ def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera
                                   extraction_options=ext)
 
 
-def _match(db: Path, n_images: int, rung: Rung, matching: str, seed: int, threads: int = -1) -> None:
+def match_features(db: Path, n_images: int, rung: Rung, matching: str, seed: int, threads: int = -1) -> None:
     """Match and verify; ``seed``: the verification's RANSAC seed (with -1, guided DSP-SIFT matches were verified
     differently on every run)."""
     import pycolmap
@@ -113,6 +118,7 @@ def _match(db: Path, n_images: int, rung: Rung, matching: str, seed: int, thread
     opts.num_threads = threads
     verify = pycolmap.TwoViewGeometryOptions()
     verify.ransac.random_seed = seed
+    verify.max_H_inlier_ratio = rung.max_h_inlier_ratio
     if matching == "exhaustive" or (matching == "auto" and n_images <= 80):
         pycolmap.match_exhaustive(db, matching_options=opts, verification_options=verify)
     else:
@@ -162,7 +168,7 @@ def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camer
     if not db.exists():
         tmp = db.with_suffix(".tmp")
         shutil.copy(feats, tmp)
-        _match(tmp, sum(len(g) for g in groups), r, matching, seed, threads)
+        match_features(tmp, sum(len(g) for g in groups), r, matching, seed, threads)
         tmp.rename(db)
     t2 = time.perf_counter()
     _map_rung(work_p, images_p, r, db, seed, "", {"features": round(t1 - t0, 2), "matching": round(t2 - t1, 2)},
@@ -211,7 +217,8 @@ def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, came
 
 # ----------------------------------------------------------------------------- given cameras
 def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, Rs: np.ndarray, ts: np.ndarray,
-                   matching: str, max_features: int, seed: int = 0, threads: int = -1):
+                   matching: str, max_features: int, seed: int = 0, threads: int = -1,
+                   max_h_inlier_ratio: float = 0.8):
     """Sparse points of photos whose cameras are given (``images/<name>.png``; intrinsics for those pixels, world →
     camera poses): the default rung's SIFT features and matches, then COLMAP's point triangulator at the given
     poses (no mapping, no pose refinement). Returns the model; its database is ``work/given.db``."""
@@ -220,9 +227,9 @@ def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, R
     work.mkdir(parents=True, exist_ok=True)
     db = work / "given.db"
     db.unlink(missing_ok=True)
-    rung = ladder("default", "default", max_features)[0]
+    rung = ladder("default", "default", max_features, max_h_inlier_ratio)[0]
     _extract(db, images, [[f"{n}.png" for n in names]], rung, "PINHOLE", per_image=True, threads=threads)
-    _match(db, len(names), rung, matching, seed, threads)
+    match_features(db, len(names), rung, matching, seed, threads)
     rec = pycolmap.Reconstruction()
     database = pycolmap.Database.open(str(db))
     try:

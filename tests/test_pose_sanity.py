@@ -131,7 +131,7 @@ def test_shortfalls():
 
 
 def test_the_seed_reaches_the_geometric_verification(monkeypatch, tmp_path):
-    """The seed a rung runs with (``cameras.seed``) is its geometric verification's RANSAC seed too: ``_match``
+    """The seed a rung runs with (``cameras.seed``) is its geometric verification's RANSAC seed too: ``match_features``
     sets it, and ``_run_rung`` hands its seed on (it was fixed at 0 while the mapper took ``cameras.seed``)."""
     import pycolmap
 
@@ -142,11 +142,11 @@ def test_the_seed_reaches_the_geometric_verification(monkeypatch, tmp_path):
                         lambda db, matching_options, verification_options: seen.append(
                             verification_options.ransac.random_seed))
     rung = ladder("default", "default", 4096)[0]
-    sfm._match(tmp_path / "x.db", 10, rung, "auto", seed=7)
+    sfm.match_features(tmp_path / "x.db", 10, rung, "auto", seed=7)
     assert seen == [7]
     calls = []
     monkeypatch.setattr(sfm, "_extract", lambda db, *a, **k: db.write_bytes(b""))
-    monkeypatch.setattr(sfm, "_match", lambda db, n, r, matching, seed, threads: calls.append(seed))
+    monkeypatch.setattr(sfm, "match_features", lambda db, n, r, matching, seed, threads: calls.append(seed))
     monkeypatch.setattr(sfm, "_map_rung", lambda *a, **k: None)
     sfm._run_rung(str(tmp_path), str(tmp_path), [["a.png", "b.png"]], asdict(rung), "PINHOLE", "auto", 11)
     assert calls == [11]
