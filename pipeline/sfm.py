@@ -48,7 +48,8 @@ class Rung:
     mapper: str = "incremental"
     max_h_inlier_ratio: float = 0.8
     """COLMAP's two-view verification: a pair whose homography explains more than this fraction of its epipolar
-    inliers is "planar", and then keeps the homography's inliers when they are more (:data:`PLANAR_RATIO`)."""
+    inliers is "planar", and then keeps the homography's inliers when they are more (``cameras.max_h_inlier_ratio``;
+    :func:`pipeline.cameras.keep_object_matches` verifies again with 1.0)."""
 
     @property
     def features_key(self) -> str:
