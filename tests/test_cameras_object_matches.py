@@ -37,15 +37,15 @@ def _object_matches(db, masks, scale: int) -> tuple[int, int]:
 
 
 def test_an_object_on_a_textured_floor_keeps_its_matches_in_large_photos(tmp_path, capsys):
-    """The cow on its textured floor in 20 photos of 1200×900 (3 × the working size, as a phone's): most of a pair's
-    matches lie on the floor, so COLMAP's verification (``max_H_inlier_ratio`` 0.8) calls the pair planar and keeps
-    the homography's inliers, the floor's alone, and the mapped model leaves the object's sphere next to no points
-    (its sphere would come from the floor's). The stage verifies again keeping each pair's epipolar inliers
+    """The cow on its textured floor in 20 photos of 960×720 (over twice the working size, as a phone's are): most of
+    a pair's matches lie on the floor, so COLMAP's verification (``max_H_inlier_ratio`` 0.8) calls the pair planar
+    and keeps the homography's inliers, the floor's alone, and the mapped model leaves the object's sphere next to
+    no points (its sphere would come from the floor's). The stage verifies again keeping each pair's epipolar inliers
     (``cameras.object_matches``): several times as many matches on the object, and points on it triangulated at the
-    same poses, enough for its sphere (0 → 36 here; the bench's 36 views in three rings: 7 → 56). 12 views 30° apart
-    register 2 on the default rung."""
+    same poses, enough for its sphere (15 → 240 matches, 0 → 50 points here; the bench's 40 photos of 1200×900:
+    7 → 56 points). 12 views 30° apart register 2 on the default rung."""
     spec = yaml.safe_load((ROOT / "configs" / "scenes" / "cow_floor.yaml").read_text())
-    spec["cameras"].update(n_views=20, rings=1, elevation=[30, 30], heldout=0, photo_scale=3)
+    spec["cameras"].update(n_views=20, rings=1, elevation=[30, 30], heldout=0, width=320, height=240, photo_scale=3)
     write_scene(scene_from_dict(spec, ROOT / "configs" / "scenes"), tmp_path / "syn")
     ws = tmp_path / "ws"
     images = str(tmp_path / "syn" / "images")
