@@ -133,22 +133,24 @@ def view_mask_iou(mask: Path, gt: Path) -> float:
     return float((a & b).sum() / max(1, (a | b).sum()))
 
 
-def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray, gain_fit: bool = False) -> float:
-    """PSNR of the textured mesh at a camera against a photo, over ``mask`` ∪ the mesh's pixels; ``gain_fit``: as
-    :func:`image_psnr` says."""
+def _render_at(tm, tex, K, R, centre, photo: np.ndarray):
+    """The textured mesh rendered at a camera, at the photo's size: (image, hit mask)."""
     from pipeline.texture import render_textured
 
     h, w = photo.shape[:2]
-    img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, R, centre, w, h)
+    return render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, R, centre, w, h)
+
+
+def render_psnr(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray, gain_fit: bool = False) -> float:
+    """PSNR of the textured mesh at a camera against a photo, over ``mask`` ∪ the mesh's pixels; ``gain_fit``: as
+    :func:`image_psnr` says."""
+    img, hit = _render_at(tm, tex, K, R, centre, photo)
     return image_psnr(img, hit, photo, mask, gain_fit)
 
 
 def render_psnrs(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
     """:func:`render_psnr` raw and with the photo's own colour gains fitted, from one render."""
-    from pipeline.texture import render_textured
-
-    h, w = photo.shape[:2]
-    img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, R, centre, w, h)
+    img, hit = _render_at(tm, tex, K, R, centre, photo)
     return image_psnr(img, hit, photo, mask), image_psnr(img, hit, photo, mask, gain_fit=True)
 
 
