@@ -49,7 +49,6 @@ from .pose_sanity import axes_convergence, model_views, pose_sanity
 from .sfm import (
     RUNG_NAMES,
     ladder,
-    match_features,
     model_stats,
     read_stage_model,
     refine_model,
@@ -57,6 +56,7 @@ from .sfm import (
     run_rung,
     shortfalls,
     triangulate_at,
+    verify_at_poses,
 )
 from .support import SupportPlane, find_support
 from .video import extract_frames, is_video
@@ -161,8 +161,8 @@ class CamerasConfig:
     mask IoU 0.987 → 0.938, 20.5 → 12.0 dB); ``object_matches`` uses it only where needed."""
     object_matches: bool = True
     """Photos twice the working size or larger (a phone's), and a model that leaves the object's sphere fewer than 20
-    sparse points (:data:`SPHERE_MIN_POINTS`, :data:`LARGE_PHOTOS`): match and verify again with
-    ``max_h_inlier_ratio`` 1.0 and triangulate the points again at the same poses. An object on a textured floor
+    sparse points (:data:`SPHERE_MIN_POINTS`, :data:`LARGE_PHOTOS`): verify the stored matches again against the
+    model's poses (each pair's epipolar inliers) and triangulate the points again at them. An object on a textured floor
     photographed larger than the working size: most of a pair's matches lie on the floor, the pair is "planar",
     and it keeps the homography's inliers — the floor's alone. The cow on its floor at 1200 × 900: 7 points on the
     object (28 verified object matches in all pairs; 346 again), so its sphere came from the floor's points (twice
@@ -334,8 +334,8 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     final adjustment (:func:`finish_model`); returns (model, folder of the images SfM saw, summary of the rungs
     tried)."""
     rec, inp, database, rung, tried = map_photos(ws, photos, cfg)
-    rec, final = finish_model(ws, rec, database, inp, cfg, rung)
-    return rec, inp, {"rung": rung, "rungs": tried, "final_adjustment": final}
+    rec, final, object_note = finish_model(ws, rec, database, inp, cfg, rung)
+    return rec, inp, {"rung": rung, "rungs": tried, "final_adjustment": final, "object_matches": object_note}
 
 
 def final_adjustment(cfg: CamerasConfig, rung: str) -> tuple[int, str]:
@@ -409,8 +409,9 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
 def finish_model(ws: Workspace, rec, database: Path, inp: Path, cfg: CamerasConfig, rung: str):
     """The model ``rec`` that the ladder's ``rung`` mapped, as the cameras stage keeps it: pinhole where the
     distortion is negligible, the final adjustment (:func:`final_adjustment`: passes, then re-triangulation);
-    written to sfm/sparse/best with its ``database`` beside (sfm/database.db, where COLMAP puts it). Returns
-    (model, notes of the final adjustment)."""
+    written to sfm/sparse/best with its ``database`` beside (sfm/database.db, where COLMAP puts it); the object's
+    matches kept (:func:`keep_object_matches`). Returns (model, notes of the final adjustment, the object matches'
+    note or None)."""
     threads = sfm_threads(cfg)
     rec, notes = prefer_pinhole(rec, cfg.pinhole_tolerance, threads)
     passes, again = final_adjustment(cfg, rung)
@@ -427,42 +428,37 @@ def finish_model(ws: Workspace, rec, database: Path, inp: Path, cfg: CamerasConf
         adjusted, note = retriangulate(adjusted, database, inp, ws.root / "sfm" / "ladder" / "final", cfg.seed,
                                        threads)
         final.append(note)
+    object_note = None
     if cfg.object_matches:
-        adjusted, database, note = keep_object_matches(ws, adjusted, database, inp, cfg, rung)
-        final += [note] if note else []
-    for note in notes + final:
+        adjusted, database, object_note = keep_object_matches(ws, adjusted, database, inp, cfg)
+    for note in notes + final + ([object_note] if object_note else []):
         print(f"cameras: {note}")
     best_dir = ws.root / "sfm" / "sparse" / "best"
     best_dir.mkdir(parents=True)
     adjusted.write(best_dir)
     shutil.copy(database, ws.root / "sfm" / "database.db")
-    return adjusted, final
+    return adjusted, final, object_note
 
 
-def keep_object_matches(ws: Workspace, rec, database: Path, inp: Path, cfg: CamerasConfig, rung: str):
-    """``rec`` with its points triangulated again, at the same poses, from matches verified keeping every pair's
-    epipolar inliers (``max_h_inlier_ratio`` 1.0: a "planar" pair no longer keeps its floor's alone), when SfM saw
-    the photos at :data:`LARGE_PHOTOS` × the working size or more, the model leaves the object's sphere fewer than
-    :data:`SPHERE_MIN_POINTS` points, and that gives it more (``object_matches``). Returns (model, its database, a
-    note or None)."""
+def keep_object_matches(ws: Workspace, rec, database: Path, inp: Path, cfg: CamerasConfig):
+    """``rec`` with its points triangulated again, at the same poses, from its ``database``'s stored matches verified
+    against those poses (:func:`pipeline.sfm.verify_at_poses`: a "planar" pair no longer keeps its floor's alone),
+    when SfM saw the photos at :data:`LARGE_PHOTOS` × the working size or more, the model leaves the object's sphere
+    fewer than :data:`SPHERE_MIN_POINTS` points, and that gives it more (``object_matches``). Returns (model, its
+    database, a note or None)."""
     sfm_side = max(max(c.width, c.height) for c in rec.cameras.values())
     if sfm_side < LARGE_PHOTOS * cfg.max_side:
         return rec, database, None
     before = sphere_points(rec, cfg)
     if before >= SPHERE_MIN_POINTS:
         return rec, database, None
-    again = [r for r in ladder(cfg.start_rung, cfg.last_rung, cfg.max_features, 1.0) if r.name == rung]
     work = ws.root / "sfm" / "ladder"
-    features = work / f"features-{again[0].features_key}.db" if again else None
-    if features is None or not features.exists():
-        return rec, database, None
-    db = work / f"matches-{again[0].matches_key}.db"
-    shutil.copy(features, db)
-    match_features(db, rec.num_images(), again[0], cfg.matching, cfg.seed, sfm_threads(cfg))
+    db = work / f"{database.stem}-posed.db"
+    verify_at_poses(rec, database, db, sfm_threads(cfg))
     out, _ = retriangulate(rec, db, inp, work / "object", cfg.seed, sfm_threads(cfg))
     after = sphere_points(out, cfg)
     note = (f"{before} sparse points for the object's sphere (it needs {SPHERE_MIN_POINTS}); matches verified "
-            f"keeping each pair's epipolar inliers and points triangulated again at the same poses: {after}")
+            f"again at the model's poses and points triangulated again at them: {after}")
     return (out, db, note) if after > before else (rec, database, note + ", kept as mapped")
 
 

@@ -133,7 +133,8 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
                           + (f", {r['error']}" if r.get("error") else "") for r in cameras_stamp["rungs"])
         out.append(f"<li>SfM ladder: {html.escape(steps)} → kept <b>{html.escape(str(cameras_stamp.get('rung')))}</b>"
                    "</li>")
-    for note in cameras_stamp.get("final_adjustment") or []:  # SfM's final bundle adjustment passes
+    object_note = cameras_stamp.get("object_matches")  # the object's matches verified again (large photos)
+    for note in (cameras_stamp.get("final_adjustment") or []) + ([object_note] if object_note else []):
         out.append(f"<li>{html.escape(note[0].upper() + note[1:])}</li>")
     spread = cameras_stamp.get("exposure_spread")
     if spread is not None:
