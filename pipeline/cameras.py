@@ -453,6 +453,7 @@ def keep_object_matches(ws: Workspace, rec, database: Path, inp: Path, cfg: Came
     if before >= SPHERE_MIN_POINTS:
         return rec, database, None
     work = ws.root / "sfm" / "ladder"
+    work.mkdir(parents=True, exist_ok=True)  # bench/pair.py's saved mappings come without the ladder's folder
     db = work / f"{database.stem}-posed.db"
     verify_at_poses(rec, database, db, sfm_threads(cfg))
     out, _ = retriangulate(rec, db, inp, work / "object", cfg.seed, sfm_threads(cfg))
