@@ -56,7 +56,7 @@ from .sfm import (
     run_rung,
     shortfalls,
     triangulate_at,
-    verify_at_poses,
+    verify_again,
 )
 from .support import SupportPlane, find_support
 from .video import extract_frames, is_video
@@ -161,8 +161,8 @@ class CamerasConfig:
     mask IoU 0.987 → 0.938, 20.5 → 12.0 dB); ``object_matches`` uses it only where needed."""
     object_matches: bool = True
     """Photos twice the working size or larger (a phone's), and a model that leaves the object's sphere fewer than 20
-    sparse points (:data:`SPHERE_MIN_POINTS`, :data:`LARGE_PHOTOS`): verify the stored matches again against the
-    model's poses (each pair's epipolar inliers) and triangulate the points again at them. An object on a textured floor
+    sparse points (:data:`SPHERE_MIN_POINTS`, :data:`LARGE_PHOTOS`): verify the stored matches again with
+    ``max_h_inlier_ratio`` 1.0 and triangulate the points again at the same poses. An object on a textured floor
     photographed larger than the working size: most of a pair's matches lie on the floor, the pair is "planar",
     and it keeps the homography's inliers — the floor's alone. The cow on its floor at 1200 × 900: 7 points on the
     object (28 verified object matches in all pairs; 346 again), so its sphere came from the floor's points (twice
@@ -442,10 +442,10 @@ def finish_model(ws: Workspace, rec, database: Path, inp: Path, cfg: CamerasConf
 
 def keep_object_matches(ws: Workspace, rec, database: Path, inp: Path, cfg: CamerasConfig):
     """``rec`` with its points triangulated again, at the same poses, from its ``database``'s stored matches verified
-    against those poses (:func:`pipeline.sfm.verify_at_poses`: a "planar" pair no longer keeps its floor's alone),
-    when SfM saw the photos at :data:`LARGE_PHOTOS` × the working size or more, the model leaves the object's sphere
-    fewer than :data:`SPHERE_MIN_POINTS` points, and that gives it more (``object_matches``). Returns (model, its
-    database, a note or None)."""
+    again keeping every pair's epipolar inliers (:func:`pipeline.sfm.verify_again` with ``max_h_inlier_ratio`` 1.0:
+    a "planar" pair no longer keeps its floor's alone), when SfM saw the photos at :data:`LARGE_PHOTOS` × the working
+    size or more, the model leaves the object's sphere fewer than :data:`SPHERE_MIN_POINTS` points, and that gives it
+    more (``object_matches``). Returns (model, its database, a note or None)."""
     sfm_side = max(max(c.width, c.height) for c in rec.cameras.values())
     if sfm_side < LARGE_PHOTOS * cfg.max_side:
         return rec, database, None
@@ -454,12 +454,12 @@ def keep_object_matches(ws: Workspace, rec, database: Path, inp: Path, cfg: Came
         return rec, database, None
     work = ws.root / "sfm" / "ladder"
     work.mkdir(parents=True, exist_ok=True)  # bench/pair.py's saved mappings come without the ladder's folder
-    db = work / f"{database.stem}-posed.db"
-    verify_at_poses(rec, database, db, sfm_threads(cfg))
+    db = work / f"{database.stem}-h1.db"
+    verify_again(database, db, 1.0, cfg.seed, sfm_threads(cfg))
     out, _ = retriangulate(rec, db, inp, work / "object", cfg.seed, sfm_threads(cfg))
     after = sphere_points(out, cfg)
     note = (f"{before} sparse points for the object's sphere (it needs {SPHERE_MIN_POINTS}); matches verified "
-            f"again at the model's poses and points triangulated again at them: {after}")
+            f"keeping each pair's epipolar inliers and points triangulated again at the same poses: {after}")
     return (out, db, note) if after > before else (rec, database, note + ", kept as mapped")
 
 

@@ -42,9 +42,9 @@ def test_an_object_on_a_textured_floor_keeps_its_matches_in_large_photos(tmp_pat
     """The cow on its textured floor in 20 photos of 960×720 (over twice the working size, as a phone's are): most of
     a pair's matches lie on the floor, so COLMAP's verification (``max_H_inlier_ratio`` 0.8) calls the pair planar
     and keeps the homography's inliers, the floor's alone, and the mapped model leaves the object's sphere next to
-    no points (its sphere would come from the floor's). The stage verifies the stored matches again against the
-    model's poses (``cameras.object_matches``): several times as many matches on the object, and points on it
-    triangulated at the same poses, enough for its sphere (15 → 309 matches, 0 → 54 points here). 12 views 30°
+    no points (its sphere would come from the floor's). The stage verifies the stored matches again keeping each
+    pair's epipolar inliers (``cameras.object_matches``): several times as many matches on the object, and points
+    on it triangulated at the same poses, enough for its sphere (15 → 240 matches, 0 → 50 points here). 12 views 30°
     apart register 2 on the default rung."""
     spec = yaml.safe_load((ROOT / "configs" / "scenes" / "cow_floor.yaml").read_text())
     spec["cameras"].update(n_views=20, rings=1, elevation=[30, 30], heldout=0, width=320, height=240, photo_scale=3)
@@ -54,12 +54,12 @@ def test_an_object_on_a_textured_floor_keeps_its_matches_in_large_photos(tmp_pat
     assert main(["cameras", str(ws), "--images", images, "--cameras.last-rung", "default"]) == 0
     note = [ln for ln in capsys.readouterr().out.splitlines() if "sparse points for the object's sphere" in ln]
     assert len(note) == 1, note
-    before, after = (int(n) for n in re.search(r"(\d+) sparse points .*at them: (\d+)", note[0]).groups())
+    before, after = (int(n) for n in re.search(r"(\d+) sparse points .*same poses: (\d+)", note[0]).groups())
     assert before < 20 <= after, note
     ladder = ws / "sfm" / "ladder"
     kept = {r: _object_matches(ladder / f"matches-f8192-h0.8{r}.db", tmp_path / "syn" / "gt" / "masks", 3)
-            for r in ("", "-posed") if (ladder / f"matches-f8192-h0.8{r}.db").exists()}
+            for r in ("", "-h1") if (ladder / f"matches-f8192-h0.8{r}.db").exists()}
     assert len(kept) == 2, sorted(p.name for p in ladder.glob("*.db"))
-    assert kept["-posed"][1] >= 3 * max(1, kept[""][1]), kept
+    assert kept["-h1"][1] >= 3 * max(1, kept[""][1]), kept
     stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
     assert stamp["object_matches"] == note[0].removeprefix("cameras: "), stamp
