@@ -164,7 +164,8 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
             points = "its sparse points on the plane, widened"
             # True: a stamp of stop 25, when sparse points were the only source
             source = {"sparse points": points, True: points,
-                      "masks' hull": "the visual hull of the first masks: too few sparse points on the object"}
+                      "masks' hull": "the visual hull of the first masks: too few sparse points on the object",
+                      "sparse points and masks' hull": f"{points}, united with the visual hull of the first masks"}
             out.append("<li>" + (f"automatic masks: every pixel that sees past the object's footprint "
                                  f"({source.get(footprint, footprint)}) is background, the table in front of it too."
                                  if footprint else "automatic masks: no footprint of the object could be built; the "

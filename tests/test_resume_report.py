@@ -113,11 +113,13 @@ def test_report_says_where_the_masks_footprint_came_from(tmp_path):
     np.savez(ws.cameras, ground_plane=np.array([0.0, 0.0, 1.0, 0.5]))
     ws.stages.mkdir(parents=True, exist_ok=True)
     said = {}
-    for value in ("sparse points", "masks' hull", True, False, None):
+    for value in ("sparse points", "masks' hull", "sparse points and masks' hull", True, False, None):
         (ws.stages / "masks.json").write_text(json.dumps({"footprint": value}))
         said[value] = capture_section(ws, {})
     assert "its sparse points on the plane, widened" in said["sparse points"] and said[True] == said["sparse points"]
     assert "the visual hull of the first masks" in said["masks' hull"]
+    assert "widened" in said["sparse points and masks' hull"] and "united with the visual hull" in said[
+        "sparse points and masks' hull"]
     assert "no footprint of the object could be built" in said[False]
     assert "automatic masks" not in said[None]
     assert not any("(True)" in s or "masks' hull)" in s for s in said.values())

@@ -239,6 +239,28 @@ def test_footprint_prism_holds_the_object_not_the_floor():
     assert footprint_prism(floor, plane, 0.1, 100) is None
 
 
+def test_united_footprint_keeps_what_overhangs_the_points():
+    """The masks' footprint united from the points' prism and the first masks' hull prism
+    (:func:`pipeline.masks.united_footprint`): a plain ear that overhangs the textured body has no points, so the
+    points' prism leaves it out and the union holds it; the union holds the body's points and the floor beyond both
+    stays out; with one prism missing it is the other, with none None."""
+    from pipeline.masks import united_footprint
+    from pipeline.support import footprint_prism
+
+    plane = np.array([0.0, 0.0, 1.0, 0.5])  # z = −0.5
+    box = _box_on_floor()
+    ear = np.array([[0.55, 0.0, 0.1], [0.6, 0.05, 0.12], [0.58, -0.05, 0.08]])  # beyond the box's 0.1 margin
+    points = footprint_prism(box, plane, margin=0.1, min_points=100)
+    hull = footprint_prism(np.concatenate([box, ear]), plane, margin=0.04, min_points=1)
+    assert not points.contains(ear).any()
+    both = united_footprint(points, hull)
+    assert both.is_watertight and both.contains(ear).all() and both.contains(box).all()
+    beyond = np.array([[0.0, 0.0, -0.6], [0.8, 0.0, -0.49], [0.0, -0.6, -0.49]])
+    assert not both.contains(beyond).any()
+    assert united_footprint(points, None) is points and united_footprint(None, hull) is hull
+    assert united_footprint(None, None) is None
+
+
 def test_footprint_makes_the_floor_round_the_object_background():
     """The masks' object region with the footprint: the pale floor in front of and beside the object, which the
     sphere alone leaves to GrabCut's colours, becomes background; every pixel of the object stays in the region,
@@ -265,6 +287,27 @@ def test_footprint_makes_the_floor_round_the_object_background():
     behind = on_floor & (x[..., 0] < -0.45) & (np.abs(x[..., 1]) < 0.1)  # the rays cross the box first
     assert front.sum() > 500 and not tight[front].any() and sphere_only[front].all()
     assert behind.sum() > 50 and tight[behind].all()
+
+
+def test_soften_beyond_leaves_the_points_prism_probable_background_not_hard():
+    """``masks.footprint_union``'s first seeds: where the sphere alone says "probably object" and the ray misses the
+    points' prism, GrabCut starts on the background's side but may still take it (a plain overhang); inside the
+    prism and outside the sphere the labels are as they were, and hard seeds stay."""
+    import cv2
+
+    from pipeline.masks import object_region, seed_labels, soften_beyond
+    from pipeline.support import footprint_prism
+
+    C, R = _ring(height=1.0, target=(0.0, 0.0, -0.2))
+    cams = _ring_cameras(C, R)
+    prism = footprint_prism(_box_on_floor(), cams.ground, 0.1, 100)
+    plain = seed_labels(cams, 0, 240, 320, None, None, 0)
+    soft = soften_beyond(plain.copy(), cams, 0, prism)
+    tight = object_region(cams, 0, 240, 320, prism)
+    beyond = (plain == cv2.GC_PR_FGD) & ~tight
+    assert beyond.sum() > 500 and (soft[beyond] == cv2.GC_PR_BGD).all()
+    assert np.array_equal(soft[~beyond], plain[~beyond])
+    assert (soft == cv2.GC_BGD).sum() == (plain == cv2.GC_BGD).sum()  # nothing hard added
 
 
 def _box_and_table_masks(focal=500.0, table_radius=0.55, with_box=True):
