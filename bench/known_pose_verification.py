@@ -42,6 +42,7 @@ def verify_at_known_poses() -> None:
     import pycolmap
 
     import pipeline.cameras as cameras_stage
+    from pipeline.sfm import copy_unverified
 
     model = {}
     keep = cameras_stage.keep_object_matches
@@ -51,10 +52,7 @@ def verify_at_known_poses() -> None:
         return keep(ws, rec, database, inp, cfg)
 
     def verify_again(database, out, max_h_inlier_ratio, seed, threads=-1):
-        shutil.copy(database, out)
-        db = pycolmap.Database.open(str(out))
-        db.clear_two_view_geometries()
-        db.close()
+        copy_unverified(database, out)
         pycolmap.guided_geometric_verification(model["rec"], out, num_threads=threads)
 
     cameras_stage.keep_object_matches = keep_object_matches

@@ -459,20 +459,19 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray],
     first = [remove_specks(m, cfg.speck_fraction)
              for m in grabcut_all(imgs, seeds, cfg.grabcut_iters, cfg.grabcut_margin)]
     first_hull = None  # built once when the footprint and the first vote both need it
-    if used is False and cfg.footprint_hull_height > 0:  # too few points: the footprint of the first masks' hull
+    # the footprint of the first masks' hull: alone (too few points), or united with the points' prism
+    if (used is False or unite) and cfg.footprint_hull_height > 0:
         first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views)
-        footprint = hull_footprint(first, cams, cfg, first_hull)
-        used = footprint is not None and "masks' hull"
-        print("masks: " + ("the support plane beyond that footprint is background" if used
-                           else "the first masks' hull stands nowhere above the plane: no footprint"))
-        for i, img in enumerate(imgs if used else []):  # hard background seeds for the vote rounds
-            seeds[i][~object_region(cams, i, img.shape[0], img.shape[1], footprint)] = cv2.GC_BGD
-    if unite:  # the points' prism united with the first masks' hull footprint, for the vote rounds
-        first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views)
-        footprint = united_footprint(footprint, hull_footprint(first, cams, cfg, first_hull))
-        used = "sparse points and masks' hull"
-        print("masks: the support plane beyond the footprint of the points and the first masks' hull is background")
-        for i, img in enumerate(imgs):
+        from_hull = hull_footprint(first, cams, cfg, first_hull)
+        if unite:
+            footprint, used = united_footprint(footprint, from_hull), "sparse points and masks' hull"
+            print("masks: the support plane beyond the footprint of the points and the first masks' hull is "
+                  "background")
+        else:
+            footprint, used = from_hull, from_hull is not None and "masks' hull"
+            print("masks: " + ("the support plane beyond that footprint is background" if used
+                               else "the first masks' hull stands nowhere above the plane: no footprint"))
+        for i, img in enumerate(imgs if footprint is not None else []):  # hard background seeds for the vote rounds
             seeds[i][~object_region(cams, i, img.shape[0], img.shape[1], footprint)] = cv2.GC_BGD
     current, sil, _ = vote(imgs, seeds, first, cams, cfg, max(1, cfg.vote_rounds), first_hull=first_hull)
     changed = []

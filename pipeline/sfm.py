@@ -309,6 +309,19 @@ def retriangulate(rec, database: Path, images: Path, work: Path, seed: int = 0, 
                  f"(the passes kept {n0})")
 
 
+def copy_unverified(database: Path, out: Path) -> None:
+    """A copy ``out`` of the COLMAP ``database`` with its stored matches and without their verification (no two-view
+    geometries), for a verification of its own."""
+    import pycolmap
+
+    shutil.copy(database, out)
+    db = pycolmap.Database.open(str(out))
+    try:
+        db.clear_two_view_geometries()
+    finally:
+        db.close()
+
+
 def verify_again(database: Path, out: Path, max_h_inlier_ratio: float, seed: int, threads: int = -1) -> None:
     """A copy ``out`` of ``database`` whose stored matches are verified again with ``max_h_inlier_ratio`` (RANSAC
     seeded with ``seed``). On an unguided rung the same verified matches as matching again (the cow's 20 photos of
@@ -318,12 +331,7 @@ def verify_again(database: Path, out: Path, max_h_inlier_ratio: float, seed: int
     plain ears (README, stop 49)."""
     import pycolmap
 
-    shutil.copy(database, out)
-    db = pycolmap.Database.open(str(out))
-    try:
-        db.clear_two_view_geometries()
-    finally:
-        db.close()
+    copy_unverified(database, out)
     geometry = pycolmap.TwoViewGeometryOptions()
     geometry.ransac.random_seed = seed
     geometry.max_H_inlier_ratio = max_h_inlier_ratio
