@@ -1,9 +1,10 @@
 """The cow's photos at 3 × the working size as JPEGs (the bench's row "photos 3× larger as JPEG"), mapped once, then
-the rest of the pipeline per arm with the object's matches verified again at the model's KNOWN poses (COLMAP's
-guided geometric verifier; tried at stop 49 in place of :func:`pipeline.sfm.verify_again` and not kept: over 100
-object points switch the masks to the points' footprint, which cut the cow's ears) and stage options:
+the rest of the pipeline per arm with the object's matches verified again at the model's KNOWN poses
+(``--cameras.object-verification poses``, the ``fast`` preset's; stop 49 found that it gave this cow over 100 object
+points, which switch the masks to the points' footprint, whose prism cut the cow's ears until ``masks.footprint_union``
+became the default in stop 50) and stage options:
 
-    python bench/known_pose_verification.py "" "--masks.footprint-union"
+    python bench/known_pose_verification.py "" "--masks.no-footprint-union"
 
 The mapping (no final passes, no object matches) is kept in ``bench/runs/known_pose/mapping``; each arm prints the
 cameras stage's object-matches note, where the masks' footprint came from, and the bench's figures
@@ -37,35 +38,13 @@ def mapped(base: Path) -> Path:
     return mapping
 
 
-def verify_at_known_poses() -> None:
-    """Patch the cameras stage: the object's matches verified against the model's poses, not by RANSAC again."""
-    import pycolmap
-
-    import pipeline.cameras as cameras_stage
-    from pipeline.sfm import copy_unverified
-
-    model = {}
-    keep = cameras_stage.keep_object_matches
-
-    def keep_object_matches(ws, rec, database, inp, cfg):
-        model["rec"] = rec
-        return keep(ws, rec, database, inp, cfg)
-
-    def verify_again(database, out, max_h_inlier_ratio, seed, threads=-1):
-        copy_unverified(database, out)
-        pycolmap.guided_geometric_verification(model["rec"], out, num_threads=threads)
-
-    cameras_stage.keep_object_matches = keep_object_matches
-    cameras_stage.verify_again = verify_again
-
-
 def main() -> None:
     base = ev.RUNS / "known_pose"
     mapping = mapped(base)
-    verify_at_known_poses()
     for k, options in enumerate(sys.argv[1:] or [""]):
         work = base / "work" / str(k)
-        r = pair.run_arm("cow", OVER, mapping, "default", options.split(), work)
+        r = pair.run_arm("cow", OVER, mapping, "default", ["--cameras.object-verification", "poses", *options.split()],
+                         work)
         cams, masks = (json.loads((work / "all" / ".stages" / f"{s}.json").read_text()) for s in ("cameras", "masks"))
         print(json.dumps({"options": options, "object_matches": cams.get("object_matches"),
                           "footprint": masks.get("footprint"), **{key: r.get(key) for key in pair.SHOWN}}), flush=True)

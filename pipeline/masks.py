@@ -9,7 +9,8 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
    support plane, every pixel that sees past the object's footprint (:func:`pipeline.support.footprint_prism`:
    the table in front of the object, which GrabCut takes where it has the object's colours; with too few sparse
    points on the object, the footprint of the first masks' visual hull, :func:`hull_footprint`, seeds the vote
-   rounds instead); plane-sweep
+   rounds instead; with enough, beyond the points' prism is only probable background at first and the vote rounds
+   take the union of both footprints, ``footprint_union``); plane-sweep
    stereo (:mod:`pipeline.mask_stereo`) adds object seeds where a pixel is photo-consistent only at depths
    inside the sphere and background seeds where only beyond it — what separates an object that has its
    backdrop's colours (and seeds GrabCut when given cameras come without SfM tracks); on the floor inside the
@@ -124,13 +125,13 @@ class MasksConfig:
     """With fewer points than that (a weakly textured object), the footprint is that of the visual hull of the
     first masks: its cells higher than this above the plane (unit-sphere radii; the table the masks took lies
     below it, as the low views carve the space above it). 0: off."""
-    footprint_union: bool = False
+    footprint_union: bool = True
     """With the footprint from sparse points: the first masks take beyond the points' prism as only probably
     background (:func:`soften_beyond`), and the vote rounds, as hard background, what lies beyond the union of it
     and the first masks' hull footprint (:func:`united_footprint`). The points' prism cuts what overhangs it without
     points of its own (the cow's plain ear tips: held-out 21.7 dB, with this 24.6), the hull's misses an object
-    lying flat below ``footprint_hull_height`` (the book: 24.7 → 18.6 dB); the union keeps both (book and DTU
-    level). Off until the bench's rows whose masks use the points' footprint are measured with it."""
+    lying flat below ``footprint_hull_height`` (the book: 24.7 → 18.6 dB); the union keeps both (book, DTU and the
+    checkered sphere on its board level). Off: the points' prism alone, hard background beyond it from the start."""
     speck_fraction: float = 0.001
     """Holes and islands of an automatic mask smaller than this fraction of the image are filled / dropped (seed
     noise); larger holes stay."""

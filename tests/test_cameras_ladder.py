@@ -13,7 +13,7 @@ from dvr.data import list_images
 from dvr.metrics import pose_errors
 from pipeline.cli import main
 from pipeline.sfm import ladder as ladder_rungs
-from pipeline.sfm import match_features
+from pipeline.sfm import match_features, verify_again
 from pipeline.stages import run_stage
 from pipeline.synth import scene_from_dict, write_scene
 from tests.conftest import ROOT
@@ -79,6 +79,13 @@ def test_symmetric_object_stops_with_a_clear_error_never_wrong_poses(tmp_path, c
     match_features(again, 16, dsp, "auto", seed=0, threads=1)
     first = _verified_pairs(ladder / f"matches-{dsp.matches_key}.db")
     assert len(first) == 120 and _verified_pairs(again) == first
+    # the default rung's stored matches verified again (cameras.object_verification "ransac") verify as the ladder did
+    default = ladder_rungs("default", "default")[0]
+    verified = ladder / f"matches-{default.matches_key}.db"
+    verify_again(verified, tmp_path / "verified.db", default.max_h_inlier_ratio, seed=0, threads=1)
+    inliers = [{pair: data for pair, rows, data, *_ in _verified_pairs(db) if rows} for db in (tmp_path / "verified.db",
+                                                                                          verified)]
+    assert len(inliers[1]) > 50 and inliers[0] == inliers[1]  # each pair's inlier matches, not only their number
 
 
 def test_merge_rung_registers_the_photos_a_partial_model_lacks(tmp_path):
