@@ -5,13 +5,18 @@ COLMAP's runs differed, ±1 dB held-out on the same photos, which hid an option'
     python bench/pair.py cow --over '{"cameras": {"n_views": 16, "rings": 2}}' --arm "" --arm "..."
 
 The scene's photos (training and held-out, as in the bench's rows from photos) are mapped once by the cameras
-stage with the defaults, and the model as mapped (no final adjustment) is kept in
+stage with the defaults, and the model as mapped (no final adjustment, no object matches) is kept in
 ``bench/runs/pairs/<scene>/mapping`` (``--remap`` maps again; ``--over`` renders the scene with overrides first,
-as the bench's conditions do, and names the pair's folder after the rendered scene). Each arm (options in the
-CLI's spelling; "" for the defaults) then runs the rest of the pipeline from that mapping and the ladder's rung
-that gave it — the cameras stage's final adjustment (:func:`pipeline.cameras.finish_model`), masks, depth,
-training, mesh, texture — and is measured like a bench row (:func:`bench.evaluate.run_synthetic`). Prints one
-line per arm and writes ``bench/runs/pairs/<scene>/<preset>.jsonl``.
+as the bench's conditions do, and names the pair's folder after the rendered scene; its ``photos_jpeg`` saves the
+photos as JPEGs, for the mapping and the arms alike). Each arm (options in the CLI's spelling; "" for the
+defaults) then runs the rest of the pipeline from that mapping and the ladder's rung that gave it — the cameras
+stage's final adjustment and object matches (:func:`pipeline.cameras.finish_model`), masks, depth, training,
+mesh, texture — and is measured like a bench row (:func:`bench.evaluate.run_synthetic`). Prints one line per arm
+and writes ``bench/runs/pairs/<scene>/<preset>.jsonl``. The phone-size cow, verifying its object's matches at the
+model's known poses against RANSAC (the default):
+
+    python bench/pair.py cow --over '{"cameras": {"photo_scale": 3}, "photos_jpeg": 92}' \
+        --arm=--cameras.object-verification=poses --arm ""
 """
 from __future__ import annotations
 
@@ -32,20 +37,31 @@ SHOWN = ("mask_iou", "psnr", "psnr_gain_fit", "psnr_gt_pose", "psnr_reaimed", "r
 
 
 def pair_folder(scene: str, over: dict) -> Path:
-    """bench/runs/pairs/<the rendered scene's folder name>."""
-    return PAIRS / ev.scene(scene, over).name
+    """bench/runs/pairs/<the rendered scene's folder name>, with ``-jpeg<quality>`` where ``over`` saves the photos
+    as JPEGs (``photos_jpeg``, as the bench's rows "photos as JPEG" do)."""
+    jpeg = over.get("photos_jpeg")
+    return PAIRS / (ev.scene(scene, scene_over(over)).name + (f"-jpeg{jpeg}" if jpeg else ""))
+
+
+def scene_over(over: dict) -> dict:
+    """The overrides of the rendered scene itself: ``over`` without the bench's photo options."""
+    return {k: v for k, v in over.items() if k not in ("heldout_from", "photos_jpeg")}
 
 
 def map_once(scene: str, over: dict, remap: bool = False) -> Path:
-    """The workspace of the scene's photos after the cameras stage (defaults, no final passes: the model as
-    mapped); mapped on the first call or with ``remap``."""
+    """The workspace of the scene's photos (JPEGs where ``over`` says ``photos_jpeg``, as the arms get them) after
+    the cameras stage with the defaults but no final passes and no object matches: the model as mapped, whose final
+    adjustment and object matches (:func:`pipeline.cameras.keep_object_matches`, photos larger than the working
+    size) each arm runs with its own options. Mapped on the first call, with ``remap``, or when the saved mapping
+    already holds the object's matches (mapped before they became the arms')."""
     out = pair_folder(scene, over)
     ws = out / "mapping"
-    if remap or not (ws / "sfm" / "sparse" / "best").is_dir():
+    done = (ws / "sfm" / "sparse" / "best").is_dir()
+    if remap or not done or (Workspace(ws).stamp("cameras") or {}).get("object_matches"):
         shutil.rmtree(out, ignore_errors=True)
-        photos = ev.photos_folder(ev.scene(scene, over), out / "photos")
-        ev.stages(("cameras",), ws, ev.config(None, ["--cameras.final-passes", "0", "--cameras.climbed-passes", "0"]),
-                  images=photos)
+        photos = ev.photos_folder(ev.scene(scene, scene_over(over)), out / "photos", over.get("photos_jpeg"))
+        ev.stages(("cameras",), ws, ev.config(None, ["--cameras.final-passes", "0", "--cameras.climbed-passes", "0",
+                                                     "--cameras.no-object-matches"]), images=photos)
     return ws
 
 
