@@ -92,9 +92,9 @@ def on_face_planes(tri, xy, K, R, t):
     return c[:, None] + depth[..., None] * dirs
 
 
-def seen_at(X, K, R, t, depths, W: int, H: int):
-    """Pixel x, y (B, P) of the points ``X`` in cameras (K, R, t), and whether each patch's centre is seen there
-    (in the frame, in front, within 1 % of that view's mesh depth ``depths``)."""
+def seen_at(X, K, R, t, depths, view, W: int, H: int):
+    """Pixel x, y (B, P) of the points ``X`` in cameras (K, R, t) (B, …), and whether each patch's centre is seen
+    there (in the frame, in front, within 1 % of the mesh's depth in ``depths`` (V, H, W) of its ``view``)."""
     Xc = X @ R.transpose(1, 2) + t[:, None]
     z = Xc[..., 2]
     pix = Xc @ K.transpose(1, 2)
@@ -105,7 +105,7 @@ def seen_at(X, K, R, t, depths, W: int, H: int):
         inside = (cx > 1) & (cx < W - 1) & (cy > 1) & (cy < H - 1) & (z[:, mid] > 0)
         col, row = cx.long().clamp(0, W - 1), cy.long().clamp(0, H - 1)
         dist = (X[:, mid] + (R.transpose(1, 2) @ t[:, :, None])[:, :, 0]).norm(dim=-1)
-        mesh_depth = depths[torch.arange(len(X)), row, col] if depths.dim() == 3 else depths
+        mesh_depth = depths[view, row, col]
         seen = inside & ((dist - mesh_depth).abs() < 0.01 * dist)
     return x, y, seen
 
@@ -154,7 +154,7 @@ def refine(verts, faces, images, masks, cams, rounds=3, iters=150, batch=2048, k
             xy = pix_xy[pick][:, None, :] + offs[None]  # (B, P, 2) patch pixels around each picked pixel
             tri = (base + normals * s[:, None])[faces_t[pix_face[pick]]]
             X = on_face_planes(tri, xy, K[vi], R[vi], t[vi])
-            xj, yj, seen = seen_at(X, K[vj], R[vj], t[vj], depths[vj], W, H)
+            xj, yj, seen = seen_at(X, K[vj], R[vj], t[vj], depths, vj, W, H)
             a = sample(grey, vi.repeat_interleave(len(offs)), xy[..., 0].flatten(), xy[..., 1].flatten())
             b = sample(grey, vj.repeat_interleave(len(offs)), xj.flatten(), yj.flatten())
             ncc, textured = zncc(a.reshape(batch, -1), b.reshape(batch, -1))
