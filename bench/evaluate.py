@@ -66,6 +66,13 @@ def scene(name: str, over: dict) -> Path:
     return out
 
 
+def scene_overrides(over: dict) -> dict:
+    """The overrides of the rendered scene itself: ``over`` without the bench's photo options, "heldout_from" (the
+    held-out photos of the scene with those overrides, :func:`run_synthetic`) and "photos_jpeg" (the photos saved as
+    JPEGs of that quality, :func:`photos_folder`)."""
+    return {k: v for k, v in over.items() if k not in ("heldout_from", "photos_jpeg")}
+
+
 def config(preset: str | None, options: list[str] = ()):
     """configs/<preset>.yaml (the defaults for None) with ``options`` in the CLI's spelling on top, progress bars
     off: what ``python -m pipeline <stage> --config … <options>`` runs with."""
@@ -259,8 +266,7 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
     from pipeline.workspace import Workspace
 
     cli_over, over = knobs.get(spec.get("knob"), ([], {}))
-    # besides the scene's own overrides: "heldout_from" (below) and "photos_jpeg" (the photos saved as JPEGs)
-    syn = scene(spec["scene"], {k: v for k, v in over.items() if k not in ("heldout_from", "photos_jpeg")})
+    syn = scene(spec["scene"], scene_overrides(over))
     # "heldout_from": measure against the held-out photos of the scene with these overrides (same cameras)
     ref = scene(spec["scene"], over["heldout_from"]) if "heldout_from" in over else syn
     gtc, hc = load_cameras(syn / "cameras.npz"), load_cameras(ref / "gt" / "heldout" / "cameras.npz")

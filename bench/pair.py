@@ -40,12 +40,7 @@ def pair_folder(scene: str, over: dict) -> Path:
     """bench/runs/pairs/<the rendered scene's folder name>, with ``-jpeg<quality>`` where ``over`` saves the photos
     as JPEGs (``photos_jpeg``, as the bench's rows "photos as JPEG" do)."""
     jpeg = over.get("photos_jpeg")
-    return PAIRS / (ev.scene(scene, scene_over(over)).name + (f"-jpeg{jpeg}" if jpeg else ""))
-
-
-def scene_over(over: dict) -> dict:
-    """The overrides of the rendered scene itself: ``over`` without the bench's photo options."""
-    return {k: v for k, v in over.items() if k not in ("heldout_from", "photos_jpeg")}
+    return PAIRS / (ev.scene(scene, ev.scene_overrides(over)).name + (f"-jpeg{jpeg}" if jpeg else ""))
 
 
 def map_once(scene: str, over: dict, remap: bool = False) -> Path:
@@ -59,7 +54,7 @@ def map_once(scene: str, over: dict, remap: bool = False) -> Path:
     done = (ws / "sfm" / "sparse" / "best").is_dir()
     if remap or not done or (Workspace(ws).stamp("cameras") or {}).get("object_matches"):
         shutil.rmtree(out, ignore_errors=True)
-        photos = ev.photos_folder(ev.scene(scene, scene_over(over)), out / "photos", over.get("photos_jpeg"))
+        photos = ev.photos_folder(ev.scene(scene, ev.scene_overrides(over)), out / "photos", over.get("photos_jpeg"))
         ev.stages(("cameras",), ws, ev.config(None, ["--cameras.final-passes", "0", "--cameras.climbed-passes", "0",
                                                      "--cameras.no-object-matches"]), images=photos)
     return ws
