@@ -5,6 +5,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+# The version of the pipeline's defaults a reconstruction row trained with (run.py stamps each row it runs); rows of
+# an older version are marked † in the table and in the findings until they are run again.
+# 1: up to stop 51. 2 (stop 52): `train.carve_min_views` 1 → 2 (the hull and its carving term need two masks).
+DEFAULTS_VERSION = 2
+STALE_NOTE = (f"† trained with older defaults (before version {DEFAULTS_VERSION}: `train.carve_min_views` 1, stop 51's "
+              "code); not comparable with rows without †, to be run again.")
+
 COLORS = {"cow": "tab:orange", "jar": "tab:green", "book": "tab:purple", "cow_float": "tab:blue", "dtu": "tab:red"}
 
 
@@ -24,6 +31,11 @@ def label(r: dict) -> str:
     if r.get("knob") and r.get("preset", "default") != "default":
         return f"{r['knob']} ({r['preset']})"
     return r.get("knob") or r.get("condition") or r["preset"]
+
+
+def stale(*rows: dict) -> str:
+    """" †" when any of ``rows`` trained with defaults older than :data:`DEFAULTS_VERSION`, else ""."""
+    return " †" if any(r.get("defaults", 1) < DEFAULTS_VERSION for r in rows) else ""
 
 
 def reconstructions(results: list[dict]) -> list[dict]:
@@ -109,11 +121,13 @@ def table(results: list[dict], mach: dict) -> str:
         s = r["seconds"]
         ch = None if r["chamfer_rel"] is None else 100 * r["chamfer_rel"]
         lines.append(
-            f"| {r['scene']} | {cams} | {label(r)} | {r['total_s']:.0f} | "
+            f"| {r['scene']} | {cams} | {label(r)}{stale(r)} | {r['total_s']:.0f} | "
             f"{s.get('cameras', 0) + s.get('masks', 0) + s.get('depth', 0):.0f} | {s.get('train', 0):.0f} | "
             f"{s.get('mesh', 0) + s.get('texture', 0):.0f} | {_fmt(r.get('mask_iou'), '{:.3f}')} | "
             f"{_fmt(ch, '{:.2f}')} | {_fmt(r['fscore'], '{:.3f}')} | {_psnr(r)} | {_pose(r)} | "
             f"{r['peak_rss_gb']:.2f} |")
+    if any(stale(r) for r in reconstructions(results)):
+        lines += ["", STALE_NOTE]
     return "\n".join(lines)
 
 
@@ -159,7 +173,7 @@ def findings(results: list[dict]) -> list[str]:
                 dt = r["total_s"] - base["total_s"]
                 dc = 100 * (base["chamfer_rel"] - r["chamfer_rel"])  # Chamfer points gained
                 dp = r["psnr"] - base["psnr"]
-                rates.append((label(r), dt, dc, dp))
+                rates.append((label(r) + stale(r, base), dt, dc, dp))
         for name, dt, dc, dp in sorted(rates, key=lambda x: x[1]):
             out.append(f"- {name}: {dt:+.0f} s → Chamfer {-dc:+.3f} points, PSNR {dp:+.2f} dB")
         dearer = [x for x in rates if x[1] > 5 and x[3] > 0]
@@ -176,7 +190,8 @@ def findings(results: list[dict]) -> list[str]:
         rs = [r for r in ok if r["scene"] == scene and r["cameras"] == "gt"]
         front = [rs[i] for i in pareto([_objectives(r) for r in rs])]
         d = [r for r in front if r["preset"] == "default" and not r.get("knob")]
-        out.append(f"- {scene}: default preset {'on' if d else 'NOT on'} the Pareto front of (time, Chamfer, PSNR) "
+        out.append(f"- {scene}{stale(*rs)}: default preset {'on' if d else 'NOT on'} the Pareto front of "
+                   "(time, Chamfer, PSNR) "
                    f"(front: {', '.join(label(r) for r in sorted(front, key=lambda r: r['total_s']))})")
     return out + ablation_findings(ablations, results)
 
@@ -239,7 +254,7 @@ def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
     for name, what, off, on in pairs:
         if off is None or on is None:
             continue
-        line = (f"- {name}, {what}: held-out PSNR {off['psnr']:.2f} → {on['psnr']:.2f} dB "
+        line = (f"- {name}, {what}{stale(off, on)}: held-out PSNR {off['psnr']:.2f} → {on['psnr']:.2f} dB "
                 f"({on['psnr'] - off['psnr']:+.2f}")
         if "psnr_gain_fit" in off and "psnr_gain_fit" in on:
             line += (f"; after fitting each held-out photo's own colour gains {off['psnr_gain_fit']:.2f} → "
@@ -263,8 +278,9 @@ def appearance_reference(by: dict) -> list[str]:
     off, top = by.get((*key, "exposure+specular")), by.get((*key, "exposure+specular held-out, effect-free training"))
     if not (off and top and "psnr_gain_fit" in off and "psnr_gain_fit" in top):
         return []
-    line = (f"- reference for the exposure + specular cow (`balanced`): the model of the cow photographed without "
-            f"effects scores {top['psnr_gain_fit']:.2f} dB on those held-out photos after fitting their gains "
+    line = (f"- reference for the exposure + specular cow (`balanced`){stale(off, top)}: the model of the cow "
+            f"photographed without effects scores {top['psnr_gain_fit']:.2f} dB on those held-out photos after fitting "
+            f"their gains "
             f"({top['psnr']:.2f} raw; the training photos' effects cost the run without appearance "
             f"{top['psnr_gain_fit'] - off['psnr_gain_fit']:.2f} dB against it)")
     for name, knob in (("appearance", "exposure+specular, appearance"),

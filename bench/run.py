@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.evaluate import RUNS, run_cameras, run_dtu, run_synthetic  # noqa: E402
-from bench.report import write  # noqa: E402
+from bench.report import DEFAULTS_VERSION, write  # noqa: E402
 
 FLOOR_SCENES = ("cow", "jar", "book")
 # knob sweep around the default preset (cow, GT cameras): name → (CLI overrides, scene overrides)
@@ -183,6 +183,8 @@ def one(spec: dict, work: Path) -> dict:
     else:
         r = run_synthetic(spec, work, {**KNOBS, **ABLATIONS})
     r["total_s"] = round(sum(r["seconds"].values()), 2)
+    if spec.get("kind") != "cameras":
+        r["defaults"] = DEFAULTS_VERSION
     return {**spec, **r}
 
 
@@ -262,12 +264,23 @@ def merged(path: Path, new: list[dict]) -> list[dict]:
     return rows
 
 
+def selected(spec: dict, only: str | None) -> bool:
+    """Whether ``--only`` picks ``spec``: one of its comma-separated words is in the scene, knob or condition."""
+    if only is None:
+        return True
+    fields = (spec["scene"], spec.get("condition", ""), spec.get("knob") or "")
+    return any(w in f for w in only.split(",") for f in fields)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fast + default on the cow with GT cameras (≤ 10 min)")
     ap.add_argument("--readme", action="store_true", help="write the tables and plot into README.md")
     ap.add_argument("--only", type=str, default=None,
-                    help="run only the specs whose scene, knob or cameras-table condition contains this")
+                    help="run only the specs whose scene, knob or cameras-table condition contains this (or one of "
+                         "these, comma-separated)")
+    ap.add_argument("--plain", action="store_true",
+                    help="run only the rows without a knob: each scene's presets, with GT cameras and from photos")
     ap.add_argument("--photos", action="store_true",
                     help="run only the rows that run SfM: from photos (SfM cameras, automatic masks) and the "
                          "cameras table (with --update)")
@@ -288,9 +301,9 @@ def main() -> None:
     if a.one:
         run_child(json.loads(a.one))
         return
-    specs = [s for s in plan(a.quick) if (a.only is None or a.only in s["scene"] or a.only in s.get("condition", "")
-                                          or a.only in (s.get("knob") or ""))
-             and (not a.photos or s.get("cameras") == "sfm" or s.get("kind") == "cameras")]
+    specs = [s for s in plan(a.quick) if selected(s, a.only)
+             and (not a.photos or s.get("cameras") == "sfm" or s.get("kind") == "cameras")
+             and (not a.plain or (s.get("kind") != "cameras" and not s.get("knob")))]
     results = run_all(specs, a.resume)
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)

@@ -38,10 +38,11 @@ def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, size
 def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min_views: int = 1,
                  chunk: int = 65536, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
                  contact_band: float = 0.0) -> torch.Tensor:
-    """True for points that ≥ ``min_views`` views see outside their mask, that no view sees, or that lie below
-    the support plane ``ground`` (4,) when the object stands on one. Within ``contact_band`` above that plane
-    (where the object meets its support and automatic masks are least sure) a point needs ≥ max(``min_views``,
-    2) views to be outside. ``sizes``: see :func:`mask_lookup`."""
+    """True for points that ≥ ``min_views`` views see outside their mask (all the views that see it when fewer
+    do: at the edge of a sparse capture's sphere one view may be all there is), that no view sees, or that lie
+    below the support plane ``ground`` (4,) when the object stands on one. Within ``contact_band`` above that
+    plane (where the object meets its support and automatic masks are least sure) a point needs ≥
+    max(``min_views``, 2) views to be outside. ``sizes``: see :func:`mask_lookup`."""
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"outside_hull: points must have shape (N, 3), got {tuple(points.shape)}")
     if P.ndim != 3 or P.shape[1:] != (3, 4) or masks.ndim != 3 or masks.shape[0] != P.shape[0]:
@@ -51,13 +52,13 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
     def outside(p: torch.Tensor) -> torch.Tensor:
         """The test above for one chunk of points."""
         vals, seen = mask_lookup(p, P, masks, sizes)
-        n_out = ((vals < 0.5) & seen).sum(0)
-        need = torch.full_like(n_out, min_views)
+        n_out, n_seen = ((vals < 0.5) & seen).sum(0), seen.sum(0)
+        need = torch.clamp(n_seen, min=1, max=min_views)
         if ground is not None:
             hgt = plane_height(ground, p)
             if contact_band > 0:
                 need = torch.where(in_contact_band(hgt, contact_band), torch.clamp(need, min=2), need)
-        free = (n_out >= need) | (seen.sum(0) == 0)
+        free = (n_out >= need) | (n_seen == 0)
         if ground is not None:
             free |= hgt < 0
         return free

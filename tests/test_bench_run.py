@@ -44,3 +44,12 @@ def test_a_bench_with_dtu_rows_makes_dtu_stages_again(tmp_path, monkeypatch):
     cow = {"scene": "cow", "cameras": "gt", "preset": "default"}
     assert run.stale_dtu_stages([cow]) == []
     assert [p.name for p in run.stale_dtu_stages([cow, dtu])] == ["dtu_all", "dtu_all-cameras_seed_1"]
+
+
+def test_only_picks_any_of_its_comma_separated_words():
+    from bench.run import plan, selected
+
+    knobs = [s for s in plan(False) if selected(s, "iterations,grid")]
+    assert {s["knob"] for s in knobs} == {"iterations=750", "iterations=3000", "grid=64 (no coarse-to-fine)",
+                                          "grid=128"}
+    assert all(selected(s, None) for s in plan(False))

@@ -6,7 +6,7 @@ import torch
 import trimesh
 
 from dvr.data import load_scene
-from dvr.hull import grid_points, hull_bounding_sphere, hull_inside, hull_logits, outside_hull
+from dvr.hull import grid_points, hull_bounding_sphere, hull_inside, hull_logits, mask_lookup, outside_hull
 
 
 def test_bounding_sphere_contains_the_object_and_is_tight(small_ws):
@@ -35,6 +35,28 @@ def test_outside_hull_and_logits(small_ws):
         outside_hull(pts[:, :2], data.P, data.masks)
     with pytest.raises(ValueError, match="P must be"):
         outside_hull(pts, data.P[:, :2], data.masks)
+
+
+def test_two_views_carve_where_two_see_and_one_where_only_one_sees():
+    """``min_views`` 2: a point that two views see and one calls background stays; a point that only one view
+    sees (a sparse capture's sphere edge) is carved by that one; no view: free."""
+    K = torch.tensor([[50.0, 0, 50], [0, 50.0, 50], [0, 0, 1]])
+
+    def cam(angle):  # on the z = 0 circle of radius 3, looking at the origin
+        c, s = np.cos(angle), np.sin(angle)
+        R = torch.tensor([[-s, c, 0.0], [0.0, 0.0, -1.0], [-c, -s, 0.0]], dtype=torch.float32)
+        t = -R @ torch.tensor([3 * c, 3 * s, 0.0], dtype=torch.float32)
+        return K @ torch.cat([R, t[:, None]], 1)
+
+    P = torch.stack([cam(0.0), cam(np.pi / 2)])
+    masks = torch.ones(2, 100, 100)
+    masks[0] = 0.0  # view 0 calls everything background
+    both, only_0, only_1 = [0.0, 0.0, 0.0], [-1.0, 3.5, 0.0], [3.5, -1.0, 0.0]  # behind view 1; behind view 0
+    vals, seen = mask_lookup(torch.tensor([both, only_0, only_1]), P, masks)
+    assert seen.tolist() == [[True, True, False], [True, False, True]]
+    out = outside_hull(torch.tensor([both, only_0, only_1, [0.0, 0.0, 9.0]]), P, masks, min_views=2)
+    assert out.tolist() == [False, True, False, True]
+    assert outside_hull(torch.tensor([both]), P, masks, min_views=1).tolist() == [True]
 
 
 @pytest.mark.parametrize("full", [False, True])

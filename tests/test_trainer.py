@@ -167,7 +167,7 @@ def test_fitted_frame_is_saved_and_consistent(small_ws, tmp_path):
     import trimesh
 
 
-    cfg = tiny_cfg(iterations=2)
+    cfg = tiny_cfg(iterations=2, carve_min_views=1)  # 8 views of 64 px: the two-view hull nearly fills the sphere
     data = load_scene(small_ws, torch.device("cpu"))
     t = train(cfg, data, tmp_path)
     _, scale, frame = load_model(tmp_path / "final.pt", torch.device("cpu"))
@@ -254,3 +254,24 @@ def test_training_time_counts_its_setup_and_a_resume_adds_its_own(small_ws, tmp_
     resumed = Trainer(cfg, data, tmp_path / "b")
     assert resumed.try_resume()
     assert resumed.elapsed == pytest.approx(saved + resumed.setup_seconds)
+
+
+def test_the_hull_needs_two_masks_to_carve_and_one_photo_alone_still_carves(small_ws):
+    """``carve_min_views`` (2 by default): a point one mask alone calls background stays in the initial hull; a
+    scene of one photo is carved by that photo (the rule asks for no more views than there are)."""
+    from types import SimpleNamespace
+
+    from dvr.trainer import initial_inside
+
+    data = load_scene(small_ws, torch.device("cpu"))
+    cfg = tiny_cfg(photo_hull=False)
+    assert cfg.carve_min_views == 2
+    masks = torch.ones_like(data.masks)
+    masks[0] = 0.0  # view 0 alone calls everything background
+    two = SimpleNamespace(P=data.P, masks=masks, images=data.images, sizes=None, cams=SimpleNamespace(ground=None))
+    kept, _ = initial_inside(cfg, two)
+    one = SimpleNamespace(P=data.P[:1], masks=masks[:1], images=data.images[:1], sizes=None,
+                          cams=SimpleNamespace(ground=None))
+    alone, _ = initial_inside(cfg, one)
+    assert kept.sum() > 0.4 * kept.size  # the unit sphere's lattice points (≈ 52 %), less what no view sees
+    assert alone.sum() == 0
