@@ -1,6 +1,8 @@
 """A probe (no option of the pipeline): training pushes free only the points that at least two views' masks carve
-(:func:`dvr.hull.outside_hull` with ``min_views`` 2), while the initial hull and the carving term keep trusting each
-mask alone; then any of the bench's one-off runners with its own arguments:
+(:func:`dvr.hull.outside_hull` with ``min_views`` 2), while the initial hull and the carving term follow the run's
+``train.carve_min_views`` (stop 51 measured this with 1, each mask alone; since stop 52 the default is 2, so at the
+defaults this probe makes the whole sphere's rule two-view); then any of the bench's one-off runners with its own
+arguments:
 
     python bench/free_two_views.py gt_arm cow
     python bench/free_two_views.py pair cow --arm ""

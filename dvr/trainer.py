@@ -185,8 +185,10 @@ class TrainConfig:
     """Views that must see a point outside their mask (all that see it, when fewer do) before the visual hull (the
     initial occupancy, the training frame) and the carving term call it empty. 2 (stop 52; was 1): one photo's
     mask that misses a thin part (an ear tip GrabCut cut) or reads a silhouette a pixel tight cut it for every
-    view; held out the cow from photos gained 1.0 dB, the jar 2.6, the cow with GT masks 0.4, for an F-score up to
-    0.035 lower (the plain stool's legs). The mask loss still uses every view's mask."""
+    view; held out from photos the cow gained 1.0 dB, the jar 2.6, the floating cow 2.5, DTU lost 0.09 (README,
+    "Stop 52: two masks to carve"). The cost is geometry where one silhouette carves by right: the cow's F-score
+    0.006–0.018 lower, and the stool from photos keeps two floaters at the sphere's edge that only 2–4 views see
+    (Chamfer 0.37 → 1.15 %). The mask loss still uses every view's mask."""
     contact_band: float = 0.05
     """Height above the support plane (working-sphere radii) where the object meets the floor or table: there a
     point is carved, and a mask-background ray's surface point pushed free, only when ≥ 2 views' masks say so
