@@ -8,7 +8,8 @@ from pathlib import Path
 # The versions of the pipeline's defaults a reconstruction row can have trained with (run.py stamps each row it runs
 # with the latest; a row without a stamp is version 1, up to stop 51), each with the change that made it; rows of an
 # older version are marked † in the table and in the findings until they are run again.
-DEFAULTS_CHANGES = {2: "stop 52: `train.carve_min_views` 1 → 2, the hull and its carving term need two masks"}
+DEFAULTS_CHANGES = {2: "stop 52: `train.carve_min_views` 1 → 2, the hull and its carving term need two masks",
+                    3: "stop 53: `train.carve_sparse_views` 5, one mask carves where fewer than 5 views see a point"}
 DEFAULTS_VERSION = max(DEFAULTS_CHANGES)
 STALE_NOTE = (f"† trained with older defaults, before version {DEFAULTS_VERSION} "
               f"({DEFAULTS_CHANGES[DEFAULTS_VERSION]}); not comparable with rows without †, to be run again.")

@@ -272,6 +272,14 @@ def selected(spec: dict, only: str | None) -> bool:
     return any(w in f for w in only.split(",") for f in fields)
 
 
+def kept(spec: dict, photos: bool = False, plain: bool = False, trained: bool = False) -> bool:
+    """Whether the flags keep ``spec``: ``photos`` the rows that run SfM (from photos, and the cameras table),
+    ``plain`` the rows without a knob that train, ``trained`` the rows that train (not the cameras table)."""
+    table = spec.get("kind") == "cameras"
+    return ((not photos or spec.get("cameras") == "sfm" or table)
+            and (not plain or (not table and not spec.get("knob"))) and (not trained or not table))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fast + default on the cow with GT cameras (≤ 10 min)")
@@ -284,6 +292,8 @@ def main() -> None:
     ap.add_argument("--photos", action="store_true",
                     help="run only the rows that run SfM: from photos (SfM cameras, automatic masks) and the "
                          "cameras table (with --update)")
+    ap.add_argument("--trained", action="store_true",
+                    help="run only the rows that train (not the cameras table); with --photos: the rows from photos")
     ap.add_argument("--update", type=Path, default=None,
                     help="a full bench's results JSON: rerun the selected rows and replace them there (the others "
                          "kept as they are); tables, plot and README (with --readme) from the merged set")
@@ -301,9 +311,7 @@ def main() -> None:
     if a.one:
         run_child(json.loads(a.one))
         return
-    specs = [s for s in plan(a.quick) if selected(s, a.only)
-             and (not a.photos or s.get("cameras") == "sfm" or s.get("kind") == "cameras")
-             and (not a.plain or (s.get("kind") != "cameras" and not s.get("knob")))]
+    specs = [s for s in plan(a.quick) if selected(s, a.only) and kept(s, a.photos, a.plain, a.trained)]
     results = run_all(specs, a.resume)
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)

@@ -37,11 +37,12 @@ def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, size
 
 def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min_views: int = 1,
                  chunk: int = 65536, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
-                 contact_band: float = 0.0) -> torch.Tensor:
-    """True for points that ≥ ``min_views`` views see outside their mask (all the views that see it when fewer
-    do: at the edge of a sparse capture's sphere one view may be all there is), that no view sees, or that lie
-    below the support plane ``ground`` (4,) when the object stands on one. Within ``contact_band`` above that
-    plane (where the object meets its support and automatic masks are least sure) a point needs ≥
+                 contact_band: float = 0.0, sparse_views: int = 0) -> torch.Tensor:
+    """True for points that ≥ ``min_views`` views see outside their mask, that no view sees, or that lie below the
+    support plane ``ground`` (4,) when the object stands on one. Where fewer than ``sparse_views`` views see a point
+    (the edge of the working sphere, which only a few photos frame), one view outside is enough: a vote of two
+    needs enough voters (and no more than all the views that see it are ever asked). Within ``contact_band`` above
+    that plane (where the object meets its support and automatic masks are least sure) a point needs ≥
     max(``min_views``, 2) views to be outside. ``sizes``: see :func:`mask_lookup`."""
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"outside_hull: points must have shape (N, 3), got {tuple(points.shape)}")
@@ -54,6 +55,7 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
         vals, seen = mask_lookup(p, P, masks, sizes)
         n_out, n_seen = ((vals < 0.5) & seen).sum(0), seen.sum(0)
         need = torch.clamp(n_seen, min=1, max=min_views)
+        need = torch.where(n_seen < sparse_views, torch.ones_like(need), need)
         if ground is not None:
             hgt = plane_height(ground, p)
             if contact_band > 0:
@@ -75,14 +77,14 @@ def grid_points(res: int, device=None, dtype=torch.float32) -> torch.Tensor:
 
 def hull_inside(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1,
                 ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
-                contact_band: float = 0.0) -> np.ndarray:
+                contact_band: float = 0.0, sparse_views: int = 0) -> np.ndarray:
     """(res+1)³ bool lattice [x, y, z] over [-1, 1]³: inside the visual hull (:func:`outside_hull`) and the unit
     sphere. Only the lattice points inside the sphere are projected (about half of them)."""
     pts = grid_points(res, device=masks.device)
     in_sphere = pts.norm(dim=-1) <= 1.0
     inside = torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device)
     inside[in_sphere] = ~outside_hull(pts[in_sphere], P, masks, min_views, ground=ground, sizes=sizes,
-                                      contact_band=contact_band)
+                                      contact_band=contact_band, sparse_views=sparse_views)
     return inside.view(res + 1, res + 1, res + 1).cpu().numpy()
 
 
@@ -111,24 +113,26 @@ def coarse_points(lattice: np.ndarray, res: int) -> np.ndarray:
 
 def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1, slope_cells: float = 1.0,
                 clamp: float = 10.0, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
-                contact_band: float = 0.0) -> torch.Tensor:
+                contact_band: float = 0.0, sparse_views: int = 0) -> torch.Tensor:
     """Logit volume (res+1)³ [x, y, z] of the visual hull (:func:`hull_inside`, :func:`inside_logits`);
     points outside the unit sphere (or below the support plane ``ground``) are free. Returns a float32 tensor
     on masks' device."""
-    inside = hull_inside(P, masks, res, min_views, ground=ground, sizes=sizes, contact_band=contact_band)
+    inside = hull_inside(P, masks, res, min_views, ground=ground, sizes=sizes, contact_band=contact_band,
+                         sparse_views=sparse_views)
     return inside_logits(inside, slope_cells, clamp, device=masks.device)
 
 
 def hull_bounding_sphere(P: torch.Tensor, masks: torch.Tensor, res: int = 64, min_views: int = 1,
                          margin: float = 1.1, ground: np.ndarray | None = None,
-                         sizes: torch.Tensor | None = None,
-                         contact_band: float = 0.0) -> tuple[np.ndarray, float] | None:
+                         sizes: torch.Tensor | None = None, contact_band: float = 0.0,
+                         sparse_views: int = 0) -> tuple[np.ndarray, float] | None:
     """Centre and radius (this frame) of a sphere around the visual hull of the masks (above the support plane
     ``ground``), × ``margin`` plus one cell; ``None`` when the hull is empty or already fills the unit sphere (no
     tighter frame to gain)."""
     pts = grid_points(res, device=masks.device)
     pts = pts[pts.norm(dim=-1) <= 1.0]
-    inside = pts[~outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes, contact_band=contact_band)]
+    inside = pts[~outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes, contact_band=contact_band,
+                               sparse_views=sparse_views)]
     if inside.shape[0] < 8:
         return None
     lo, hi = inside.min(0).values, inside.max(0).values

@@ -53,3 +53,20 @@ def test_only_picks_any_of_its_comma_separated_words():
     assert {s["knob"] for s in knobs} == {"iterations=750", "iterations=3000", "grid=64 (no coarse-to-fine)",
                                           "grid=128"}
     assert all(selected(s, None) for s in plan(False))
+
+
+def test_the_flags_keep_their_rows():
+    """``--plain``: rows that train without a knob; ``--photos``: rows that run SfM (the cameras table too);
+    ``--photos --trained``: the rows from photos that train."""
+    from bench.run import kept, plan
+
+    specs = plan(False)
+    table = [s for s in specs if s.get("kind") == "cameras"]
+    assert table and all(kept(s, photos=True) for s in table)
+    assert not any(kept(s, plain=True) or kept(s, trained=True) for s in table)
+    plain = [s for s in specs if kept(s, plain=True)]
+    assert plain and not any(s.get("knob") for s in plain) and {s["cameras"] for s in plain} == {"gt", "sfm"}
+    ours = [s for s in specs if kept(s, photos=True, trained=True)]
+    assert ours and all(s["cameras"] == "sfm" for s in ours) and any(s.get("knob") for s in ours)
+    assert len(ours) + len(table) == sum(kept(s, photos=True) for s in specs)
+    assert all(kept(s) for s in specs)

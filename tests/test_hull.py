@@ -59,6 +59,29 @@ def test_two_views_carve_where_two_see_and_one_where_only_one_sees():
     assert outside_hull(torch.tensor([both]), P, masks, min_views=1).tolist() == [True]
 
 
+def test_one_view_carves_where_fewer_than_sparse_views_see_the_point():
+    """``sparse_views``: a point that three views see and one calls background stays under the two-mask rule, and is
+    carved once fewer than ``sparse_views`` views see it (4: yes; 3: no, three views are enough voters)."""
+    K = torch.tensor([[50.0, 0, 50], [0, 50.0, 50], [0, 0, 1]])
+
+    def cam(angle):  # on the z = 0 circle of radius 3, looking at the origin
+        c, s = np.cos(angle), np.sin(angle)
+        R = torch.tensor([[-s, c, 0.0], [0.0, 0.0, -1.0], [-c, -s, 0.0]], dtype=torch.float32)
+        t = -R @ torch.tensor([3 * c, 3 * s, 0.0], dtype=torch.float32)
+        return K @ torch.cat([R, t[:, None]], 1)
+
+    P = torch.stack([cam(0.0), cam(np.pi / 2), cam(np.pi)])
+    masks = torch.ones(3, 100, 100)
+    masks[0] = 0.0
+    centre = torch.zeros(1, 3)
+    assert mask_lookup(centre, P, masks)[1].all()
+    assert outside_hull(centre, P, masks, min_views=2).tolist() == [False]
+    assert outside_hull(centre, P, masks, min_views=2, sparse_views=3).tolist() == [False]
+    assert outside_hull(centre, P, masks, min_views=2, sparse_views=4).tolist() == [True]
+    assert hull_inside(P, masks, res=8, min_views=2, sparse_views=4).sum() < hull_inside(P, masks, res=8,
+                                                                                          min_views=2).sum()
+
+
 @pytest.mark.parametrize("full", [False, True])
 def test_hull_lattice_projects_only_the_sphere_and_equals_the_whole_lattice_test(small_ws, full):
     """hull_inside tests only the lattice points inside the unit sphere (about half of them: the masks stage builds

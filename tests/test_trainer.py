@@ -275,3 +275,24 @@ def test_the_hull_needs_two_masks_to_carve_and_one_photo_alone_still_carves(smal
     alone, _ = initial_inside(cfg, one)
     assert kept.sum() > 0.4 * kept.size  # the unit sphere's lattice points (≈ 52 %), less what no view sees
     assert alone.sum() == 0
+
+
+def test_sparse_views_let_one_mask_carve_in_the_hull_and_the_carving_term(small_ws, tmp_path):
+    """``carve_sparse_views``: where fewer views than it see a point, one mask carves it — in the initial hull and in
+    the carving term (:meth:`Trainer.carved`) alike. With more than the scene's 8 views every point is sparsely seen,
+    so view 0's all-background mask carves everything it sees (all but the points behind it or outside its frame); at
+    the default (5) the two-mask rule holds."""
+    from dvr.trainer import initial_inside
+
+    data = load_scene(small_ws, torch.device("cpu"))
+    data.masks[:] = 1.0
+    data.masks[0] = 0.0  # view 0 alone calls everything background
+    centre = torch.zeros(1, 3)
+    default = tiny_cfg(photo_hull=False)
+    assert default.carve_sparse_views == 5 < data.P.shape[0]
+    kept = initial_inside(default, data)[0]
+    assert Trainer(default, data, tmp_path / "two").carved(centre).tolist() == [False]
+    sparse = tiny_cfg(photo_hull=False, carve_sparse_views=data.P.shape[0] + 1)
+    cut = initial_inside(sparse, data)[0]
+    assert cut.sum() < 0.1 * kept.sum()  # what is left, view 0 does not see
+    assert Trainer(sparse, data, tmp_path / "one").carved(centre).tolist() == [True]
