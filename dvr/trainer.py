@@ -187,8 +187,9 @@ class TrainConfig:
     mask that misses a thin part (an ear tip GrabCut cut) or reads a silhouette a pixel tight cut it for every
     view; held out from photos the cow gained 1.0 dB, the jar 2.6, the floating cow 2.5, DTU lost 0.09 (README,
     "Stop 52: two masks to carve"). The cost is geometry where one silhouette carves by right: the cow's F-score
-    0.006–0.018 lower, and the stool from photos keeps two floaters at the sphere's edge that only 2–4 views see
-    (Chamfer 0.37 → 1.15 %). The mask loss still uses every view's mask."""
+    0.006–0.018 lower (exact masks: of the cow's surface off by more than 1 % of the diagonal, 58 % is where one
+    view alone calls it background), and at the sphere's edge, which only 2–4 views see, the stool from photos kept
+    two floaters (Chamfer 0.37 → 1.15 %; ``carve_sparse_views`` below). The mask loss still uses every view's mask."""
     carve_sparse_views: int = 5
     """Where fewer than this many views see a point (the working sphere's edge, which only a few photos frame), one
     view's mask outside carves it whatever ``carve_min_views`` asks: two of the few masks that see such a point
