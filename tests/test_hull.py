@@ -37,18 +37,19 @@ def test_outside_hull_and_logits(small_ws):
         outside_hull(pts, data.P[:, :2], data.masks)
 
 
+def ring_camera(angle: float) -> torch.Tensor:
+    """(3, 4) projection of a 100-px camera on the z = 0 circle of radius 3 at ``angle``, looking at the origin."""
+    K = torch.tensor([[50.0, 0, 50], [0, 50.0, 50], [0, 0, 1]])
+    c, s = np.cos(angle), np.sin(angle)
+    R = torch.tensor([[-s, c, 0.0], [0.0, 0.0, -1.0], [-c, -s, 0.0]], dtype=torch.float32)
+    t = -R @ torch.tensor([3 * c, 3 * s, 0.0], dtype=torch.float32)
+    return K @ torch.cat([R, t[:, None]], 1)
+
+
 def test_two_views_carve_where_two_see_and_one_where_only_one_sees():
     """``min_views`` 2: a point that two views see and one calls background stays; a point that only one view
     sees (a sparse capture's sphere edge) is carved by that one; no view: free."""
-    K = torch.tensor([[50.0, 0, 50], [0, 50.0, 50], [0, 0, 1]])
-
-    def cam(angle):  # on the z = 0 circle of radius 3, looking at the origin
-        c, s = np.cos(angle), np.sin(angle)
-        R = torch.tensor([[-s, c, 0.0], [0.0, 0.0, -1.0], [-c, -s, 0.0]], dtype=torch.float32)
-        t = -R @ torch.tensor([3 * c, 3 * s, 0.0], dtype=torch.float32)
-        return K @ torch.cat([R, t[:, None]], 1)
-
-    P = torch.stack([cam(0.0), cam(np.pi / 2)])
+    P = torch.stack([ring_camera(0.0), ring_camera(np.pi / 2)])
     masks = torch.ones(2, 100, 100)
     masks[0] = 0.0  # view 0 calls everything background
     both, only_0, only_1 = [0.0, 0.0, 0.0], [-1.0, 3.5, 0.0], [3.5, -1.0, 0.0]  # behind view 1; behind view 0
@@ -62,15 +63,7 @@ def test_two_views_carve_where_two_see_and_one_where_only_one_sees():
 def test_one_view_carves_where_fewer_than_sparse_views_see_the_point():
     """``sparse_views``: a point that three views see and one calls background stays under the two-mask rule, and is
     carved once fewer than ``sparse_views`` views see it (4: yes; 3: no, three views are enough voters)."""
-    K = torch.tensor([[50.0, 0, 50], [0, 50.0, 50], [0, 0, 1]])
-
-    def cam(angle):  # on the z = 0 circle of radius 3, looking at the origin
-        c, s = np.cos(angle), np.sin(angle)
-        R = torch.tensor([[-s, c, 0.0], [0.0, 0.0, -1.0], [-c, -s, 0.0]], dtype=torch.float32)
-        t = -R @ torch.tensor([3 * c, 3 * s, 0.0], dtype=torch.float32)
-        return K @ torch.cat([R, t[:, None]], 1)
-
-    P = torch.stack([cam(0.0), cam(np.pi / 2), cam(np.pi)])
+    P = torch.stack([ring_camera(0.0), ring_camera(np.pi / 2), ring_camera(np.pi)])
     masks = torch.ones(3, 100, 100)
     masks[0] = 0.0
     centre = torch.zeros(1, 3)
