@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT))
 
 from bench import evaluate as ev  # noqa: E402
 from dvr.data import load_scene  # noqa: E402
-from dvr.hull import mask_lookup  # noqa: E402
+from dvr.hull import view_votes  # noqa: E402
 from dvr.metrics import sample_surface  # noqa: E402
 
 
@@ -39,8 +39,7 @@ def main() -> None:
     dist, _ = cKDTree(sample_surface(gt, 50000, 1)).query(pts)
     far = pts[dist > threshold]
     data = load_scene(syn, torch.device("cpu"), use_depth=False)
-    vals, seen = mask_lookup(torch.from_numpy(far).float(), data.P, data.masks, data.sizes)
-    n_out = ((vals < 0.5) & seen).sum(0).numpy()
+    n_out = view_votes(torch.from_numpy(far).float(), data.P, data.masks, data.sizes)[0].numpy()
     height = (far[:, 2] - lo[2]) / (hi[2] - lo[2])
     print(f"{len(far)} of {len(pts)} surface points farther than 1 % of the diagonal from the truth")
     print("views whose exact mask calls them background (0, 1, 2, 3, 4, 5, ≥ 6):",

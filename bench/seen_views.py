@@ -20,7 +20,7 @@ sys.path.insert(0, str(ROOT))
 from bench import evaluate as ev  # noqa: E402
 from dvr.cameras import plane_height  # noqa: E402
 from dvr.data import load_scene  # noqa: E402
-from dvr.hull import grid_points, mask_lookup  # noqa: E402
+from dvr.hull import grid_points, view_votes  # noqa: E402
 from dvr.trainer import TrainConfig, training_frame  # noqa: E402
 
 GT_SCENES = ("cow", "jar", "book", "cow_float", "stool", "mug")
@@ -28,8 +28,7 @@ GT_SCENES = ("cow", "jar", "book", "cow_float", "stool", "mug")
 
 def sparsely_seen(data, pts: torch.Tensor, fewer_than: int) -> int:
     """How many of ``pts`` above ``data``'s support plane 1 to ``fewer_than`` − 1 views see."""
-    _, seen = mask_lookup(pts, data.P, data.masks, data.sizes)
-    n = seen.sum(0)
+    n = view_votes(pts, data.P, data.masks, data.sizes)[1]
     g = data.cams.ground
     above = torch.ones_like(n, dtype=torch.bool) if g is None else plane_height(g, pts) >= 0
     return int(((n >= 1) & (n < fewer_than) & above).sum())

@@ -35,6 +35,13 @@ def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, size
     return vals[:, 0, :, 0], seen
 
 
+def view_votes(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, sizes: torch.Tensor | None = None):
+    """For each point, how many views see it outside their mask (mask value < 0.5) and how many see it at all: two
+    (N,) counts (:func:`mask_lookup`)."""
+    vals, seen = mask_lookup(points, P, masks, sizes)
+    return ((vals < 0.5) & seen).sum(0), seen.sum(0)
+
+
 def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min_views: int = 1,
                  chunk: int = 65536, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
                  contact_band: float = 0.0, sparse_views: int = 0) -> torch.Tensor:
@@ -52,8 +59,7 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
 
     def outside(p: torch.Tensor) -> torch.Tensor:
         """The test above for one chunk of points."""
-        vals, seen = mask_lookup(p, P, masks, sizes)
-        n_out, n_seen = ((vals < 0.5) & seen).sum(0), seen.sum(0)
+        n_out, n_seen = view_votes(p, P, masks, sizes)
         need = torch.clamp(n_seen, min=1, max=min_views)
         need = torch.where(n_seen < sparse_views, torch.ones_like(need), need)
         if ground is not None:

@@ -321,14 +321,19 @@ _CHECKPOINT_KEYS = ("step", "elapsed", "skipped", "field", "opt", "sched", "rng_
                     "rng_py")
 
 
+def carve_rules(cfg: TrainConfig, data: SceneData) -> dict:
+    """The masks' carving rules of this run, as keyword arguments of :func:`dvr.hull.outside_hull` (and of the hull
+    and frame built on it): the same for the initial hull, the training frame and the carving term."""
+    return dict(min_views=cfg.carve_min_views, sparse_views=cfg.carve_sparse_views, contact_band=cfg.contact_band,
+                ground=data.cams.ground, sizes=data.sizes)
+
+
 def training_frame(cfg: TrainConfig, data: SceneData) -> SceneData:
     """The scene as training sees it: with ``fit_frame``, reframed so that the working sphere is the visual hull's
     bounding sphere (as it is when the hull is empty or fills the sphere, or without ``fit_frame``)."""
     if not cfg.fit_frame:
         return data
-    sphere = hull_bounding_sphere(data.P, data.masks, cfg.hull_res, cfg.carve_min_views, cfg.frame_margin,
-                                  ground=data.cams.ground, sizes=data.sizes, contact_band=cfg.contact_band,
-                                  sparse_views=cfg.carve_sparse_views)
+    sphere = hull_bounding_sphere(data.P, data.masks, cfg.hull_res, margin=cfg.frame_margin, **carve_rules(cfg, data))
     return data if sphere is None else data.reframe(*sphere)
 
 
@@ -338,8 +343,7 @@ def initial_inside(cfg: TrainConfig, data: SceneData) -> tuple[np.ndarray, Photo
     did."""
 
     def visual_hull(res: int) -> np.ndarray:
-        return hull_inside(data.P, data.masks, res, cfg.carve_min_views, ground=data.cams.ground, sizes=data.sizes,
-                           contact_band=cfg.contact_band, sparse_views=cfg.carve_sparse_views)
+        return hull_inside(data.P, data.masks, res, **carve_rules(cfg, data))
 
     inside = visual_hull(cfg.hull_res)
     if not cfg.photo_hull:
@@ -491,9 +495,7 @@ class Trainer:
 
     def carved(self, pts: torch.Tensor) -> torch.Tensor:
         """(M,) True where the masks carve the points (:func:`outside_hull` with this run's rules)."""
-        return outside_hull(pts, self.data.P, self.data.masks, self.cfg.carve_min_views, ground=self.data.cams.ground,
-                            sizes=self.data.sizes, contact_band=self.cfg.contact_band,
-                            sparse_views=self.cfg.carve_sparse_views)
+        return outside_hull(pts, self.data.P, self.data.masks, **carve_rules(self.cfg, self.data))
 
     def below_support(self, pts: torch.Tensor) -> torch.Tensor:
         """(M,) True for points below the support plane (none without one)."""
