@@ -296,3 +296,26 @@ def test_sparse_views_let_one_mask_carve_in_the_hull_and_the_carving_term(small_
     cut = initial_inside(sparse, data)[0]
     assert cut.sum() < 0.1 * kept.sum()  # what is left, view 0 does not see
     assert Trainer(sparse, data, tmp_path / "one").carved(centre).tolist() == [True]
+
+
+def test_sparse_views_reach_the_training_frame(small_ws):
+    """``carve_sparse_views`` also decides the training frame (:func:`training_frame`, the hull's bounding sphere):
+    every view's mask is a disc in its centre, small in views 0 and 2 (a quarter turn apart). Under the two-mask rule
+    what only one of those two calls background stays, their two cones' union reaches the sphere and the frame stays;
+    where one mask may carve (more sparse views than the scene's 8) the hull is about the cones' intersection and the
+    frame tightens around it."""
+    from dvr.trainer import training_frame
+
+    data = load_scene(small_ws, torch.device("cpu"))
+    _, H, W = data.masks.shape
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+
+    def disc(radius: float) -> torch.Tensor:
+        return (((u - W / 2) ** 2 + (v - H / 2) ** 2) < (radius * W) ** 2).float()
+
+    data.masks[:] = disc(0.35)
+    data.masks[[0, 2]] = disc(0.15)
+    assert training_frame(tiny_cfg(), data) is data
+    framed = training_frame(tiny_cfg(carve_sparse_views=data.P.shape[0] + 1), data)
+    radius = framed.cams.scale_mat[0, 0] / data.cams.scale_mat[0, 0]
+    assert framed is not data and radius < 0.8
