@@ -26,14 +26,15 @@ RUNNERS = ("gt_arm", "pair", "dtu_arm")
 
 
 def freespace_points_two_views(push_free):
-    """``Trainer.freespace_points`` keeping only the points ≥ 2 views' masks carve."""
+    """``Trainer.freespace_points`` keeping only the points the masks carve with the run's rules
+    (:func:`dvr.trainer.carve_rules`: the support plane, the contact band, ``carve_sparse_views``) and ≥ 2 views."""
 
     def points(self, batch):
         pts = push_free(self, batch)
         if pts.shape[0] == 0:
             return pts
-        return pts[outside_hull(pts, self.data.P, self.data.masks, 2, ground=self.data.cams.ground,
-                                sizes=self.data.sizes, contact_band=self.cfg.contact_band)]
+        return pts[outside_hull(pts, self.data.P, self.data.masks, **{**trainer.carve_rules(self.cfg, self.data),
+                                                                      "min_views": 2})]
 
     return points
 
