@@ -27,14 +27,14 @@ RUNNERS = ("gt_arm", "pair", "dtu_arm")
 
 def freespace_points_two_views(push_free):
     """``Trainer.freespace_points`` keeping only the points the masks carve with the run's rules
-    (:func:`dvr.trainer.carve_rules`: the support plane, the contact band, ``carve_sparse_views``) and ≥ 2 views."""
+    (:func:`dvr.trainer.carve_rules`: support plane, contact band, sparse views, sure background) and ≥ 2 views."""
 
     def points(self, batch):
         pts = push_free(self, batch)
         if pts.shape[0] == 0:
             return pts
-        return pts[outside_hull(pts, self.data.P, self.data.masks, **{**trainer.carve_rules(self.cfg, self.data),
-                                                                      "min_views": 2})]
+        rules = {**trainer.carve_rules(self.cfg, self.data, self.near), "min_views": 2}
+        return pts[outside_hull(pts, self.data.P, self.data.masks, **rules)]
 
     return points
 

@@ -42,15 +42,30 @@ def view_votes(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, sizes
     return ((vals < 0.5) & seen).sum(0), seen.sum(0)
 
 
+def near_object(masks: torch.Tensor, px) -> torch.Tensor:
+    """(V, H, W) float on ``masks``' device: 1 where a pixel lies less than ``px`` pixels from its mask's nearest
+    object pixel (mask ≥ 0.5; the object pixels themselves included), 0 farther into the background. ``px``: one
+    distance, or one per view."""
+    dist = np.broadcast_to(np.asarray(px, dtype=float), (masks.shape[0],)) if masks.ndim == 3 else np.zeros(0)
+    if masks.ndim != 3 or not (dist > 0).all():
+        raise ValueError(f"near_object: masks must be (V, H, W) and px > 0, got {tuple(masks.shape)} and {px}")
+    background = (masks < 0.5).cpu().numpy()
+    near = np.stack([(ndimage.distance_transform_edt(b) < d) if not b.all() else np.zeros(b.shape, bool)
+                     for b, d in zip(background, dist)])
+    return torch.from_numpy(near).to(device=masks.device, dtype=masks.dtype)
+
+
 def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min_views: int = 1,
                  chunk: int = 65536, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
-                 contact_band: float = 0.0, sparse_views: int = 0) -> torch.Tensor:
+                 contact_band: float = 0.0, sparse_views: int = 0, near: torch.Tensor | None = None) -> torch.Tensor:
     """True for points that ≥ ``min_views`` views see outside their mask, that no view sees, or that lie below the
     support plane ``ground`` (4,) when the object stands on one. Where fewer than ``sparse_views`` views see a point
     (the edge of the working sphere, which only a few photos frame), one view outside is enough: a vote of two
     needs enough voters (and no more than all the views that see it are ever asked). Within ``contact_band`` above
     that plane (where the object meets its support and automatic masks are least sure) a point needs ≥
-    max(``min_views``, 2) views to be outside. ``sizes``: see :func:`mask_lookup`."""
+    max(``min_views``, 2) views to be outside. ``near`` (:func:`near_object` of the masks): one view carves, wherever
+    the point lies, when it projects where that view is 0 (far inside its background). ``sizes``: see
+    :func:`mask_lookup`."""
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"outside_hull: points must have shape (N, 3), got {tuple(points.shape)}")
     if P.ndim != 3 or P.shape[1:] != (3, 4) or masks.ndim != 3 or masks.shape[0] != P.shape[0]:
@@ -67,6 +82,8 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
             if contact_band > 0:
                 need = torch.where(in_contact_band(hgt, contact_band), torch.clamp(need, min=2), need)
         free = (n_out >= need) | (n_seen == 0)
+        if near is not None:
+            free |= view_votes(p, P, near, sizes)[0] > 0
         if ground is not None:
             free |= hgt < 0
         return free
@@ -81,16 +98,14 @@ def grid_points(res: int, device=None, dtype=torch.float32) -> torch.Tensor:
     return torch.stack([x, y, z], dim=-1).view(-1, 3)
 
 
-def hull_inside(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1,
-                ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
-                contact_band: float = 0.0, sparse_views: int = 0) -> np.ndarray:
-    """(res+1)³ bool lattice [x, y, z] over [-1, 1]³: inside the visual hull (:func:`outside_hull`) and the unit
-    sphere. Only the lattice points inside the sphere are projected (about half of them)."""
+def hull_inside(P: torch.Tensor, masks: torch.Tensor, res: int = 96, **rules) -> np.ndarray:
+    """(res+1)³ bool lattice [x, y, z] over [-1, 1]³: inside the visual hull (:func:`outside_hull` with the carving
+    ``rules``, its keyword arguments) and the unit sphere. Only the lattice points inside the sphere are projected
+    (about half of them)."""
     pts = grid_points(res, device=masks.device)
     in_sphere = pts.norm(dim=-1) <= 1.0
     inside = torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device)
-    inside[in_sphere] = ~outside_hull(pts[in_sphere], P, masks, min_views, ground=ground, sizes=sizes,
-                                      contact_band=contact_band, sparse_views=sparse_views)
+    inside[in_sphere] = ~outside_hull(pts[in_sphere], P, masks, **rules)
     return inside.view(res + 1, res + 1, res + 1).cpu().numpy()
 
 
@@ -117,28 +132,23 @@ def coarse_points(lattice: np.ndarray, res: int) -> np.ndarray:
     return lattice[np.ix_(sel, sel, sel)]
 
 
-def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, min_views: int = 1, slope_cells: float = 1.0,
-                clamp: float = 10.0, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
-                contact_band: float = 0.0, sparse_views: int = 0) -> torch.Tensor:
-    """Logit volume (res+1)³ [x, y, z] of the visual hull (:func:`hull_inside`, :func:`inside_logits`);
-    points outside the unit sphere (or below the support plane ``ground``) are free. Returns a float32 tensor
-    on masks' device."""
-    inside = hull_inside(P, masks, res, min_views, ground=ground, sizes=sizes, contact_band=contact_band,
-                         sparse_views=sparse_views)
+def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, slope_cells: float = 1.0, clamp: float = 10.0,
+                **rules) -> torch.Tensor:
+    """Logit volume (res+1)³ [x, y, z] of the visual hull (:func:`hull_inside`, :func:`inside_logits`; ``rules``:
+    :func:`outside_hull`'s keyword arguments); points outside the unit sphere (or below the support plane
+    ``ground``) are free. Returns a float32 tensor on masks' device."""
+    inside = hull_inside(P, masks, res, **rules)
     return inside_logits(inside, slope_cells, clamp, device=masks.device)
 
 
-def hull_bounding_sphere(P: torch.Tensor, masks: torch.Tensor, res: int = 64, min_views: int = 1,
-                         margin: float = 1.1, ground: np.ndarray | None = None,
-                         sizes: torch.Tensor | None = None, contact_band: float = 0.0,
-                         sparse_views: int = 0) -> tuple[np.ndarray, float] | None:
-    """Centre and radius (this frame) of a sphere around the visual hull of the masks (above the support plane
-    ``ground``), × ``margin`` plus one cell; ``None`` when the hull is empty or already fills the unit sphere (no
-    tighter frame to gain)."""
+def hull_bounding_sphere(P: torch.Tensor, masks: torch.Tensor, res: int = 64, margin: float = 1.1,
+                         **rules) -> tuple[np.ndarray, float] | None:
+    """Centre and radius (this frame) of a sphere around the visual hull of the masks (:func:`outside_hull` with the
+    carving ``rules``; above the support plane ``ground`` when they name one), × ``margin`` plus one cell; ``None``
+    when the hull is empty or already fills the unit sphere (no tighter frame to gain)."""
     pts = grid_points(res, device=masks.device)
     pts = pts[pts.norm(dim=-1) <= 1.0]
-    inside = pts[~outside_hull(pts, P, masks, min_views, ground=ground, sizes=sizes, contact_band=contact_band,
-                               sparse_views=sparse_views)]
+    inside = pts[~outside_hull(pts, P, masks, **rules)]
     if inside.shape[0] < 8:
         return None
     lo, hi = inside.min(0).values, inside.max(0).values

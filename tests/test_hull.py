@@ -6,12 +6,12 @@ import torch
 import trimesh
 
 from dvr.data import load_scene
-from dvr.hull import grid_points, hull_bounding_sphere, hull_inside, hull_logits, mask_lookup, outside_hull
+from dvr.hull import grid_points, hull_bounding_sphere, hull_inside, hull_logits, mask_lookup, near_object, outside_hull
 
 
 def test_bounding_sphere_contains_the_object_and_is_tight(small_ws):
     data = load_scene(small_ws, torch.device("cpu"))
-    c, r = hull_bounding_sphere(data.P, data.masks, 64, 1, 1.1)
+    c, r = hull_bounding_sphere(data.P, data.masks, 64, 1.1, min_views=1)
     v = np.asarray(trimesh.load(small_ws / "gt" / "mesh.ply").vertices)  # the torus, radius 0.7
     d = np.linalg.norm(v - c, axis=1)
     assert d.max() < r and r < 0.95  # everything inside, and tighter than the unit sphere
@@ -73,6 +73,39 @@ def test_one_view_carves_where_fewer_than_sparse_views_see_the_point():
     assert outside_hull(centre, P, masks, min_views=2, sparse_views=4).tolist() == [True]
     assert hull_inside(P, masks, res=8, min_views=2, sparse_views=4).sum() < hull_inside(P, masks, res=8,
                                                                                           min_views=2).sum()
+
+
+def test_near_object_marks_the_pixels_within_px_of_an_object_pixel():
+    """1 on the object and less than ``px`` from it (one distance, or one per view), 0 beyond; a mask without object
+    is all 0; bad input: one-line ValueError."""
+    masks = torch.zeros(2, 9, 9)
+    masks[0, 4, 4] = 1.0
+    near = near_object(masks, 2.5)
+    assert near.shape == masks.shape and near.dtype == masks.dtype
+    rows, cols = torch.meshgrid(torch.arange(9.0), torch.arange(9.0), indexing="ij")
+    assert torch.equal(near[0], (((rows - 4) ** 2 + (cols - 4) ** 2) < 2.5 ** 2).float())
+    assert near[1].sum() == 0
+    per_view = near_object(masks, [1.5, 2.5])  # one distance per view
+    assert torch.equal(per_view[0], (((rows - 4) ** 2 + (cols - 4) ** 2) < 1.5 ** 2).float())
+    for bad in ((masks[0], 2.0), (masks, 0.0), (masks, float("nan"))):
+        with pytest.raises(ValueError, match="near_object"):
+            near_object(*bad)
+
+
+def test_one_mask_carves_where_the_point_lies_far_inside_its_background():
+    """``near`` (:func:`near_object`): a point that three views see and one calls background stays under the
+    two-mask rule when it lies near that view's object pixels, and is carved once it lies farther from them than
+    ``px`` (the sure background)."""
+    P = torch.stack([ring_camera(0.0), ring_camera(np.pi / 2), ring_camera(np.pi)])
+    masks = torch.ones(3, 100, 100)
+    masks[0] = 0.0
+    masks[0, :, :40] = 1.0  # view 0's object ends 10 px left of the centre, where the origin projects
+    centre = torch.zeros(1, 3)
+    assert outside_hull(centre, P, masks, min_views=2).tolist() == [False]
+    assert outside_hull(centre, P, masks, min_views=2, near=near_object(masks, 20.0)).tolist() == [False]
+    assert outside_hull(centre, P, masks, min_views=2, near=near_object(masks, 5.0)).tolist() == [True]
+    assert hull_inside(P, masks, res=8, min_views=2, near=near_object(masks, 5.0)).sum() < hull_inside(
+        P, masks, res=8, min_views=2).sum()
 
 
 @pytest.mark.parametrize("full", [False, True])

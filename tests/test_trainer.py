@@ -183,13 +183,14 @@ def test_fitted_frame_is_saved_and_consistent(small_ws, tmp_path):
 
 def test_one_mask_cannot_push_the_contact_band_free(small_ws, tmp_path):
     """Within ``contact_band`` above the support plane a mask-background ray's surface point is pushed free only
-    when two views' masks carve it (one automatic mask missing the contact strip cut the bottom off a book)."""
+    when two views' masks carve it (one automatic mask missing the contact strip cut the bottom off a book) — or one
+    mask that puts it deep in its background (``carve_sure_depth``; off for the first part)."""
     from dataclasses import replace
 
     import numpy as np
 
     data = load_scene(small_ws, torch.device("cpu"))
-    t = Trainer(tiny_cfg(iterations=1), data, tmp_path)
+    t = Trainer(tiny_cfg(iterations=1, carve_sure_depth=0.0), data, tmp_path)
     t.data.masks[:] = 1.0
     t.data.masks[0] = 0.0  # view 0 alone calls everything background
     t.data.cams = replace(t.data.cams, ground=np.array([0.0, 0.0, 1.0, 0.3]))  # z = −0.3
@@ -200,6 +201,11 @@ def test_one_mask_cannot_push_the_contact_band_free(small_ws, tmp_path):
     t.cfg.contact_band = 0.0
     t.data.masks[1] = 1.0
     assert t.contact_doubt(pts).tolist() == [False, False]  # no band: one view is enough
+    data.masks[:] = 1.0
+    data.masks[0] = 0.0
+    data.cams = replace(data.cams, ground=np.array([0.0, 0.0, 1.0, 0.3]))
+    sure = Trainer(tiny_cfg(iterations=1, fit_frame=False), data, tmp_path / "sure")
+    assert sure.contact_doubt(pts).tolist() == [False, False]  # view 0 has no object pixel: sure background
 
 
 def test_loss_terms_are_named_after_their_weights(small_ws, tmp_path):
@@ -258,13 +264,14 @@ def test_training_time_counts_its_setup_and_a_resume_adds_its_own(small_ws, tmp_
 
 def test_the_hull_needs_two_masks_to_carve_and_one_photo_alone_still_carves(small_ws):
     """``carve_min_views`` (2 by default): a point one mask alone calls background stays in the initial hull; a
-    scene of one photo is carved by that photo (the rule asks for no more views than there are)."""
+    scene of one photo is carved by that photo (the rule asks for no more views than there are). The sure-background
+    rule off (``carve_sure_depth`` 0): view 0's mask without object pixels would carve all it sees."""
     from types import SimpleNamespace
 
     from dvr.trainer import initial_inside
 
     data = load_scene(small_ws, torch.device("cpu"))
-    cfg = tiny_cfg(photo_hull=False)
+    cfg = tiny_cfg(photo_hull=False, carve_sure_depth=0.0)
     assert cfg.carve_min_views == 2
     masks = torch.ones_like(data.masks)
     masks[0] = 0.0  # view 0 alone calls everything background
@@ -281,29 +288,51 @@ def test_sparse_views_let_one_mask_carve_in_the_hull_and_the_carving_term(small_
     """``carve_sparse_views``: where fewer views than it see a point, one mask carves it — in the initial hull and in
     the carving term (:meth:`Trainer.carved`) alike. With more than the scene's 8 views every point is sparsely seen,
     so view 0's all-background mask carves everything it sees (all but the points behind it or outside its frame); at
-    the default (5) the two-mask rule holds."""
+    the default (5) the two-mask rule holds (the sure-background rule off, ``carve_sure_depth`` 0: view 0's mask
+    without object pixels would carve all it sees)."""
     from dvr.trainer import initial_inside
 
     data = load_scene(small_ws, torch.device("cpu"))
     data.masks[:] = 1.0
     data.masks[0] = 0.0  # view 0 alone calls everything background
     centre = torch.zeros(1, 3)
-    default = tiny_cfg(photo_hull=False)
+    default = tiny_cfg(photo_hull=False, carve_sure_depth=0.0)
     assert default.carve_sparse_views == 5 < data.P.shape[0]
     kept = initial_inside(default, data)[0]
     assert Trainer(default, data, tmp_path / "two").carved(centre).tolist() == [False]
-    sparse = tiny_cfg(photo_hull=False, carve_sparse_views=data.P.shape[0] + 1)
+    sparse = tiny_cfg(photo_hull=False, carve_sure_depth=0.0, carve_sparse_views=data.P.shape[0] + 1)
     cut = initial_inside(sparse, data)[0]
     assert cut.sum() < 0.1 * kept.sum()  # what is left, view 0 does not see
     assert Trainer(sparse, data, tmp_path / "one").carved(centre).tolist() == [True]
 
+
+
+def test_sure_background_lets_one_mask_carve_in_the_hull_and_the_carving_term(small_ws, tmp_path):
+    """``carve_sure_depth`` (0.01 of the image's diagonal by default): one view's mask carves a point it puts farther
+    than that into its background, in the initial hull and in the carving term alike. View 0's object is a band at
+    the left edge of its 64 px: the centre, about 22 px away from it, goes at the default (0.9 px) and stays under
+    the two-mask rule alone (0: off) and at 0.3 of the diagonal (27 px)."""
+    from dvr.trainer import initial_inside
+
+    data = load_scene(small_ws, torch.device("cpu"))
+    data.masks[:] = 1.0
+    data.masks[0, :, 11:] = 0.0
+    centre = torch.zeros(1, 3)
+    default, off, far = tiny_cfg(photo_hull=False), tiny_cfg(photo_hull=False, carve_sure_depth=0.0), \
+        tiny_cfg(photo_hull=False, carve_sure_depth=0.3)
+    assert default.carve_sure_depth == 0.01
+    assert initial_inside(default, data)[0].sum() < 0.5 * initial_inside(off, data)[0].sum()
+    assert Trainer(default, data, tmp_path / "sure").carved(centre).tolist() == [True]
+    assert Trainer(off, data, tmp_path / "off").carved(centre).tolist() == [False]
+    assert Trainer(far, data, tmp_path / "far").carved(centre).tolist() == [False]
 
 def test_sparse_views_reach_the_training_frame(small_ws):
     """``carve_sparse_views`` also decides the training frame (:func:`training_frame`, the hull's bounding sphere):
     every view's mask is a disc in its centre, small in views 0 and 2 (a quarter turn apart). Under the two-mask rule
     what only one of those two calls background stays, their two cones' union reaches the sphere and the frame stays;
     where one mask may carve (more sparse views than the scene's 8) the hull is about the cones' intersection and the
-    frame tightens around it."""
+    frame tightens around it (the sure-background rule off, ``carve_sure_depth`` 0: it would carve the discs' far
+    background too)."""
     from dvr.trainer import training_frame
 
     data = load_scene(small_ws, torch.device("cpu"))
@@ -315,7 +344,7 @@ def test_sparse_views_reach_the_training_frame(small_ws):
 
     data.masks[:] = disc(0.35)
     data.masks[[0, 2]] = disc(0.15)
-    assert training_frame(tiny_cfg(), data) is data
-    framed = training_frame(tiny_cfg(carve_sparse_views=data.P.shape[0] + 1), data)
+    assert training_frame(tiny_cfg(carve_sure_depth=0.0), data) is data
+    framed = training_frame(tiny_cfg(carve_sure_depth=0.0, carve_sparse_views=data.P.shape[0] + 1), data)
     radius = framed.cams.scale_mat[0, 0] / data.cams.scale_mat[0, 0]
     assert framed is not data and radius < 0.8
