@@ -9,9 +9,7 @@ from pathlib import Path
 # with the latest; a row without a stamp is version 1, up to stop 51), each with the change that made it; rows of an
 # older version are marked † in the table and in the findings until they are run again.
 DEFAULTS_CHANGES = {2: "stop 52: `train.carve_min_views` 1 → 2, the hull and its carving term need two masks",
-                    3: "stop 53: `train.carve_sparse_views` 5, one mask carves where fewer than 5 views see a point",
-                    4: "stop 54: `train.carve_sure_depth` 0.01, one mask carves a point 1 % of the image's diagonal "
-                       "into its background"}
+                    3: "stop 53: `train.carve_sparse_views` 5, one mask carves where fewer than 5 views see a point"}
 DEFAULTS_VERSION = max(DEFAULTS_CHANGES)
 STALE_NOTE = (f"† trained with older defaults, before version {DEFAULTS_VERSION} "
               f"({DEFAULTS_CHANGES[DEFAULTS_VERSION]}); not comparable with rows without †, to be run again.")

@@ -204,13 +204,13 @@ class TrainConfig:
     rarely agree, and the two-mask rule left floaters there (stop 53: the stool from photos 28.72 → 28.99 dB,
     Chamfer 1.15 → 0.41 %; the cow, the floating cow and every scene with GT cameras unchanged, the jar −0.11 dB;
     0: off)."""
-    carve_sure_depth: float = 0.01
-    """How far into a view's background (from its mask's nearest object pixel, as a fraction of the image's diagonal:
-    5 px at 400×300) a point must lie for that view's mask alone to carve it, whatever ``carve_min_views`` asks: a
-    mask that misses a thin part misses it near its edge, one that sees background far from any object pixel is sure
-    of it. Stop 54 (was off): with GT cameras and masks the cow 28.03 → 28.18 dB (F 0.982 → 0.984), the stool +0.30,
-    the jar +0.25; from photos the cow 26.04 → 26.42, the jar 34.43 → 34.86, DTU 18.89 → 18.94 (README, "Stop 54").
-    0: off."""
+    carve_sure_depth: float = 0.0
+    """How far into a view's background (from its mask's nearest object pixel, as a fraction of the image's diagonal;
+    0.01 is 5 px at 400×300) a point must lie for that view's mask alone to carve it, whatever ``carve_min_views``
+    asks. 0: off (the default). Stop 54 measured 0.01 on the bench's 18 plain rows: from photos the cow +0.38 dB,
+    the jar +0.43, DTU +0.06, but the floating cow −0.79 (one automatic mask misses a part of it by up to 15 px) and
+    the book −0.22; with GT cameras the jar +0.25, the cow +0.15 (`quality` −0.27) — so not the default (README,
+    "Stop 54")."""
     contact_band: float = 0.05
     """Height above the support plane (working-sphere radii) where the object meets the floor or table: there a
     point is carved, and a mask-background ray's surface point pushed free, only when ≥ 2 views' masks say so

@@ -184,7 +184,7 @@ def test_fitted_frame_is_saved_and_consistent(small_ws, tmp_path):
 def test_one_mask_cannot_push_the_contact_band_free(small_ws, tmp_path):
     """Within ``contact_band`` above the support plane a mask-background ray's surface point is pushed free only
     when two views' masks carve it (one automatic mask missing the contact strip cut the bottom off a book) — or one
-    mask that puts it deep in its background (``carve_sure_depth``; off for the first part)."""
+    mask that puts it deep in its background (``carve_sure_depth``, off by default)."""
     from dataclasses import replace
 
     import numpy as np
@@ -204,7 +204,7 @@ def test_one_mask_cannot_push_the_contact_band_free(small_ws, tmp_path):
     data.masks[:] = 1.0
     data.masks[0] = 0.0
     data.cams = replace(data.cams, ground=np.array([0.0, 0.0, 1.0, 0.3]))
-    sure = Trainer(tiny_cfg(iterations=1, fit_frame=False), data, tmp_path / "sure")
+    sure = Trainer(tiny_cfg(iterations=1, fit_frame=False, carve_sure_depth=0.01), data, tmp_path / "sure")
     assert sure.contact_doubt(pts).tolist() == [False, False]  # view 0 has no object pixel: sure background
 
 
@@ -308,23 +308,24 @@ def test_sparse_views_let_one_mask_carve_in_the_hull_and_the_carving_term(small_
 
 
 def test_sure_background_lets_one_mask_carve_in_the_hull_and_the_carving_term(small_ws, tmp_path):
-    """``carve_sure_depth`` (0.01 of the image's diagonal by default): one view's mask carves a point it puts farther
-    than that into its background, in the initial hull and in the carving term alike. View 0's object is a band at
-    the left edge of its 64 px: the centre, about 22 px away from it, goes at the default (0.9 px) and stays under
-    the two-mask rule alone (0: off) and at 0.3 of the diagonal (27 px)."""
+    """``carve_sure_depth`` (a fraction of the image's diagonal; off by default): one view's mask carves a point it
+    puts farther than that into its background, in the initial hull and in the carving term alike. View 0's object
+    is a band at the left edge of its 64 px: the centre, about 22 px away from it, goes at 0.01 (0.9 px) and stays
+    under the two-mask rule alone (0, the default) and at 0.3 of the diagonal (27 px)."""
     from dvr.trainer import initial_inside
 
     data = load_scene(small_ws, torch.device("cpu"))
     data.masks[:] = 1.0
     data.masks[0, :, 11:] = 0.0
     centre = torch.zeros(1, 3)
-    default, off, far = tiny_cfg(photo_hull=False), tiny_cfg(photo_hull=False, carve_sure_depth=0.0), \
+    off, sure, far = tiny_cfg(photo_hull=False), tiny_cfg(photo_hull=False, carve_sure_depth=0.01), \
         tiny_cfg(photo_hull=False, carve_sure_depth=0.3)
-    assert default.carve_sure_depth == 0.01
-    assert initial_inside(default, data)[0].sum() < 0.5 * initial_inside(off, data)[0].sum()
-    assert Trainer(default, data, tmp_path / "sure").carved(centre).tolist() == [True]
+    assert off.carve_sure_depth == 0
+    assert initial_inside(sure, data)[0].sum() < 0.5 * initial_inside(off, data)[0].sum()
+    assert Trainer(sure, data, tmp_path / "sure").carved(centre).tolist() == [True]
     assert Trainer(off, data, tmp_path / "off").carved(centre).tolist() == [False]
     assert Trainer(far, data, tmp_path / "far").carved(centre).tolist() == [False]
+
 
 def test_sparse_views_reach_the_training_frame(small_ws):
     """``carve_sparse_views`` also decides the training frame (:func:`training_frame`, the hull's bounding sphere):
