@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 from bench import evaluate as ev  # noqa: E402
 from dvr.cameras import load_cameras, to_normalized  # noqa: E402
 from dvr.data import list_images, load_scene  # noqa: E402
-from dvr.hull import mask_lookup, view_votes  # noqa: E402
+from dvr.hull import background_distance, mask_lookup, view_votes  # noqa: E402
 from dvr.metrics import sample_surface, umeyama  # noqa: E402
 
 DEPTHS_PX = (1.5, 3, 5, 8, 12)
@@ -52,7 +51,7 @@ def truth_in_sfm_frame(syn: Path, ws: Path) -> trimesh.Trimesh:
 def background_depth(points: np.ndarray, data) -> np.ndarray:
     """(N,) pixels from each point's projection to the nearest object pixel of the mask that puts it deepest into
     its background (0 where every view that sees it calls it object)."""
-    depth = np.stack([ndimage.distance_transform_edt(m) for m in data.masks.numpy() < 0.5])
+    depth = background_distance(data.masks)
     vals, seen = mask_lookup(torch.from_numpy(points).float(), data.P, torch.from_numpy(depth).float(), data.sizes)
     return torch.where(seen, vals, torch.zeros_like(vals)).max(0).values.numpy()
 

@@ -42,16 +42,22 @@ def view_votes(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, sizes
     return ((vals < 0.5) & seen).sum(0), seen.sum(0)
 
 
+def background_distance(masks: torch.Tensor) -> np.ndarray:
+    """(V, H, W) float64: each pixel's distance in pixels to its mask's nearest object pixel (mask ≥ 0.5; 0 on the
+    object, inf in a mask without object pixels)."""
+    background = (masks < 0.5).cpu().numpy()
+    return np.stack([ndimage.distance_transform_edt(b) if not b.all() else np.full(b.shape, np.inf)
+                     for b in background])
+
+
 def near_object(masks: torch.Tensor, px) -> torch.Tensor:
     """(V, H, W) float on ``masks``' device: 1 where a pixel lies less than ``px`` pixels from its mask's nearest
-    object pixel (mask ≥ 0.5; the object pixels themselves included), 0 farther into the background. ``px``: one
-    distance, or one per view."""
+    object pixel (:func:`background_distance`; the object pixels themselves included), 0 farther into the background.
+    ``px``: one distance, or one per view."""
     dist = np.broadcast_to(np.asarray(px, dtype=float), (masks.shape[0],)) if masks.ndim == 3 else np.zeros(0)
     if masks.ndim != 3 or not (dist > 0).all():
         raise ValueError(f"near_object: masks must be (V, H, W) and px > 0, got {tuple(masks.shape)} and {px}")
-    background = (masks < 0.5).cpu().numpy()
-    near = np.stack([(ndimage.distance_transform_edt(b) < d) if not b.all() else np.zeros(b.shape, bool)
-                     for b, d in zip(background, dist)])
+    near = background_distance(masks) < dist[:, None, None]
     return torch.from_numpy(near).to(device=masks.device, dtype=masks.dtype)
 
 

@@ -341,9 +341,8 @@ def sure_background(cfg: TrainConfig, data: SceneData) -> torch.Tensor | None:
     where it is 0, that view's mask alone carves."""
     if cfg.carve_sure_depth <= 0:
         return None
-    V, H, W = data.masks.shape
-    sizes = data.sizes if data.sizes is not None else torch.tensor([[W, H]] * V)  # each view's (width, height)
-    return near_object(data.masks, cfg.carve_sure_depth * sizes.double().cpu().norm(dim=1).numpy())
+    diagonals = data.sizes.double().cpu().norm(dim=1).numpy()  # of each view's own (width, height)
+    return near_object(data.masks, cfg.carve_sure_depth * diagonals)
 
 
 def carve_rules(cfg: TrainConfig, data: SceneData, near: torch.Tensor | None = None) -> dict:

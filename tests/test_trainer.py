@@ -306,7 +306,6 @@ def test_sparse_views_let_one_mask_carve_in_the_hull_and_the_carving_term(small_
     assert Trainer(sparse, data, tmp_path / "one").carved(centre).tolist() == [True]
 
 
-
 def test_sure_background_lets_one_mask_carve_in_the_hull_and_the_carving_term(small_ws, tmp_path):
     """``carve_sure_depth`` (a fraction of the image's diagonal; off by default): one view's mask carves a point it
     puts farther than that into its background, in the initial hull and in the carving term alike. View 0's object
