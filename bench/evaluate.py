@@ -231,6 +231,24 @@ def true_cameras_of(gtc, hc) -> dict[str, tuple]:
     return {**{f"{i:06d}": (gtc, i) for i in range(len(gtc))}, **{f"{HELDOUT}{i:06d}": (hc, i) for i in range(len(hc))}}
 
 
+def true_in_sfm_frame(gtc, hc, names: list[str], est) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """A photos-only run's photos ``names`` (SfM's cameras ``est``, in the same order): their true camera centres
+    and rotations (:func:`true_cameras_of` ``gtc``, ``hc``) and the similarity (s, R, t) from the true world into
+    SfM's frame, fitted on the centres."""
+    from dvr.metrics import umeyama
+
+    gt_of = true_cameras_of(gtc, hc)
+    centres = np.stack([gt_of[n][0].sfm_centers[gt_of[n][1]] for n in names])
+    rotations = np.stack([gt_of[n][0].R[gt_of[n][1]] for n in names])
+    return centres, rotations, umeyama(centres, est.sfm_centers)
+
+
+def similarity_matrix(sim: tuple) -> np.ndarray:
+    """(4, 4) homogeneous matrix of the similarity ``sim`` = (s, R, t): x ↦ s R x + t."""
+    s, R, t = sim
+    return np.block([[s * R, t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
+
+
 class HeldoutPsnrs(NamedTuple):
     """Per held-out photo of a photos-only run (:func:`heldout_psnrs`)."""
     at_sfm: list[float]  # at the poses SfM gave the photos it registered
@@ -262,7 +280,7 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
     import trimesh
 
     from dvr.cameras import load_cameras
-    from dvr.metrics import chamfer_fscore, pose_errors, umeyama
+    from dvr.metrics import chamfer_fscore, pose_errors
     from pipeline.workspace import Workspace
 
     cli_over, over = knobs.get(spec.get("knob"), ([], {}))
@@ -294,13 +312,10 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
         from dvr.data import list_images
 
         names = [p.stem for p in list_images(full / "images")]
-        gt_of = true_cameras_of(gtc, hc)
         est = load_cameras(full / "cameras.npz")
-        gt_c = np.stack([gt_of[n][0].sfm_centers[gt_of[n][1]] for n in names])
-        gt_R = np.stack([gt_of[n][0].R[gt_of[n][1]] for n in names])
-        s, R, t = umeyama(gt_c, est.sfm_centers)  # GT world → SfM frame
+        gt_c, gt_R, (s, R, t) = true_in_sfm_frame(gtc, hc, names, est)  # GT world → SfM frame
         extra["pose"] = pose_errors(est.sfm_centers, est.R, gt_c, gt_R)
-        extra["registered"] = f"{len(names)}/{len(gt_of)}"
+        extra["registered"] = f"{len(names)}/{len(gtc) + len(hc)}"
         gt_masks = {**{f"{i:06d}": syn / "gt" / "masks" / f"{i:06d}.png" for i in range(len(gtc))},
                     **{f"{HELDOUT}{i:06d}": syn / "gt" / "heldout" / "masks" / f"{i:06d}.png" for i in range(len(hc))}}
         extra["mask_iou"] = mask_iou(full, gt_masks)
@@ -322,7 +337,7 @@ def run_synthetic(spec: dict, work: Path, knobs: dict) -> dict:
             for p in held if (k := at.get(f"{HELDOUT}{p.stem}")) is not None]))
         extra["heldout_registered"] = f"{len(psnr)}/{len(held)}"
     gt = trimesh.load(syn / "gt" / "mesh.ply")
-    gt.apply_transform(np.block([[s * R, t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    gt.apply_transform(similarity_matrix((s, R, t)))
     geo = chamfer_fscore(trimesh.load(ws / "mesh" / "clean.ply"), gt, n=50000)
     return {"seconds": secs, "chamfer_rel": geo["chamfer_rel"], "fscore": geo["fscore"],
             "psnr": float(np.mean(psnr)) if psnr else float("nan"), **extra}

@@ -30,7 +30,7 @@ from bench import evaluate as ev  # noqa: E402
 from dvr.cameras import load_cameras, to_normalized  # noqa: E402
 from dvr.data import list_images, load_scene  # noqa: E402
 from dvr.hull import background_distance, mask_lookup, view_votes  # noqa: E402
-from dvr.metrics import sample_surface, umeyama  # noqa: E402
+from dvr.metrics import sample_surface  # noqa: E402
 
 DEPTHS_PX = (1.5, 3, 5, 8, 12)
 
@@ -40,11 +40,10 @@ def truth_in_sfm_frame(syn: Path, ws: Path) -> trimesh.Trimesh:
     ``all`` beside it), by the similarity between the true and the estimated camera centres."""
     full = ws.parent / "all"
     names = [p.stem for p in list_images(full / "images")]
-    gt_of = ev.true_cameras_of(load_cameras(syn / "cameras.npz"), load_cameras(syn / "gt" / "heldout" / "cameras.npz"))
-    true_c = np.stack([gt_of[n][0].sfm_centers[gt_of[n][1]] for n in names])
-    s, R, t = umeyama(true_c, load_cameras(full / "cameras.npz").sfm_centers)
+    gtc, hc = load_cameras(syn / "cameras.npz"), load_cameras(syn / "gt" / "heldout" / "cameras.npz")
+    _, _, sim = ev.true_in_sfm_frame(gtc, hc, names, load_cameras(full / "cameras.npz"))
     gt = trimesh.load(syn / "gt" / "mesh.ply")
-    gt.apply_transform(np.block([[s * R, t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    gt.apply_transform(ev.similarity_matrix(sim))
     return gt
 
 

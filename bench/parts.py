@@ -32,7 +32,6 @@ sys.path.insert(0, str(ROOT))
 from bench import evaluate as ev  # noqa: E402
 from dvr.cameras import load_cameras, plane_in_frame, save_cameras  # noqa: E402
 from dvr.data import list_images  # noqa: E402
-from dvr.metrics import umeyama  # noqa: E402
 from pipeline.stages import run_stage  # noqa: E402
 
 PARTS = ("as-is", "gt-masks", "no-depth", "gt-cameras", "gt-cameras-bake")
@@ -46,8 +45,8 @@ class Truth:
         self.of = ev.true_cameras_of(load_cameras(syn / "gt" / "cameras.npz"), held)
         self.held, self.names = held, [p.stem for p in list_images(full / "images")]
         self.est = load_cameras(full / "cameras.npz")
-        centres = np.stack([self.of[n][0].sfm_centers[self.of[n][1]] for n in self.names])
-        self.s, self.R, self.t = umeyama(centres, self.est.sfm_centers)
+        _, _, (self.s, self.R, self.t) = ev.true_in_sfm_frame(load_cameras(syn / "gt" / "cameras.npz"), held,
+                                                              self.names, self.est)
 
     def write_in_sfm_frame(self, names: list[str], like: Path, out: Path) -> None:
         """The true cameras of ``names`` in SfM's frame, with the scale_mat and support plane of ``like``."""

@@ -71,7 +71,7 @@ def main() -> None:
                            ev._read_mask(syn / "gt" / "heldout" / "masks" / p.name)) for i, p in enumerate(held)]
     gt_masks = {n: syn / "gt" / "masks" / f"{k:06d}.png" for n, k in zip(names, src)}
     gt = trimesh.load(syn / "gt" / "mesh.ply")
-    gt.apply_transform(np.block([[s * R, t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    gt.apply_transform(ev.similarity_matrix((s, R, t)))
     geo = chamfer_fscore(trimesh.load(ws / "mesh" / "clean.ply"), gt, n=50000)
     row = {"clip_frames": a.clip_frames, "turns": a.turns, "codec": a.codec, "portrait": a.portrait,
            "frames_taken": len(chosen),

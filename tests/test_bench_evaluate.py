@@ -123,3 +123,32 @@ def test_photos_folder_as_the_renders_or_as_a_phones_jpegs(tmp_path):
     got = cv2.imread(str(jpg / f"{HELDOUT}000000.jpg")).astype(float)
     err = np.abs(got - renders[("held", "000000")]).mean()
     assert 0.0 < err < 4.0
+
+
+def test_true_cameras_brought_into_sfms_frame():
+    """bench/evaluate.py true_in_sfm_frame: the registered photos' true centres and rotations, matched by name (a
+    held-out photo among them, one training photo unregistered), and the similarity that maps the true centres onto
+    SfM's; similarity_matrix applies it as a 4×4."""
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation
+
+    from bench.evaluate import HELDOUT, similarity_matrix, true_in_sfm_frame
+
+    class Cams(SimpleNamespace):
+        def __len__(self):
+            return len(self.R)
+
+    rng = np.random.default_rng(0)
+    train = Cams(sfm_centers=rng.normal(size=(4, 3)), R=Rotation.random(4, random_state=1).as_matrix())
+    held = Cams(sfm_centers=rng.normal(size=(2, 3)), R=Rotation.random(2, random_state=2).as_matrix())
+    names = ["000000", "000002", f"{HELDOUT}000001", "000003"]
+    true_c = np.stack([train.sfm_centers[0], train.sfm_centers[2], held.sfm_centers[1], train.sfm_centers[3]])
+    s, R, t = 2.5, Rotation.from_euler("xyz", [0.3, -0.2, 1.1]).as_matrix(), np.array([1.0, -2.0, 0.5])
+    est = SimpleNamespace(sfm_centers=s * true_c @ R.T + t)
+    centres, rotations, sim = true_in_sfm_frame(train, held, names, est)
+    assert np.allclose(centres, true_c)
+    assert np.allclose(rotations[2], held.R[1]) and np.allclose(rotations[1], train.R[2])
+    assert np.isclose(sim[0], s) and np.allclose(sim[1], R) and np.allclose(sim[2], t)
+    moved = np.c_[true_c, np.ones(4)] @ similarity_matrix(sim).T
+    assert np.allclose(moved[:, :3], est.sfm_centers) and np.allclose(moved[:, 3], 1.0)
