@@ -280,6 +280,14 @@ def kept(spec: dict, photos: bool = False, plain: bool = False, trained: bool = 
             and (not plain or (not table and not spec.get("knob"))) and (not trained or not table))
 
 
+def stale_specs(specs: list[dict], path: Path) -> list[dict]:
+    """The ``specs`` whose training row in the results JSON ``path`` ran with defaults older than
+    :data:`bench.report.DEFAULTS_VERSION` (the rows its tables mark †)."""
+    old = {spec_key(r) for r in json.loads(path.read_text())["results"]
+           if r.get("kind") != "cameras" and r.get("defaults", 1) < DEFAULTS_VERSION}
+    return [s for s in specs if spec_key(s) in old]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fast + default on the cow with GT cameras (≤ 10 min)")
@@ -294,6 +302,8 @@ def main() -> None:
                          "cameras table (with --update)")
     ap.add_argument("--trained", action="store_true",
                     help="run only the rows that train (not the cameras table); with --photos: the rows from photos")
+    ap.add_argument("--stale", action="store_true",
+                    help="with --update: only the rows that its JSON holds from older defaults (marked †)")
     ap.add_argument("--update", type=Path, default=None,
                     help="a full bench's results JSON: rerun the selected rows and replace them there (the others "
                          "kept as they are); tables, plot and README (with --readme) from the merged set")
@@ -312,6 +322,10 @@ def main() -> None:
         run_child(json.loads(a.one))
         return
     specs = [s for s in plan(a.quick) if selected(s, a.only) and kept(s, a.photos, a.plain, a.trained)]
+    if a.stale:
+        if a.update is None:
+            ap.error("--stale needs --update (the results JSON whose rows of older defaults to run again)")
+        specs = stale_specs(specs, a.update)
     results = run_all(specs, a.resume)
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)

@@ -33,7 +33,6 @@ def test_merged_keeps_the_old_row_when_the_rerun_failed_and_appends_new_specs(tm
     assert [r["psnr"] for r in rows] == [24.0, 32.0]
 
 
-
 def test_a_bench_with_dtu_rows_makes_dtu_stages_again(tmp_path, monkeypatch):
     import bench.run as run
 
@@ -70,3 +69,21 @@ def test_the_flags_keep_their_rows():
     assert ours and all(s["cameras"] == "sfm" for s in ours) and any(s.get("knob") for s in ours)
     assert len(ours) + len(table) == sum(kept(s, photos=True) for s in specs)
     assert all(kept(s) for s in specs)
+
+
+def test_stale_picks_the_training_rows_of_older_defaults(tmp_path):
+    """``--stale``: the specs whose row in the JSON ran with defaults older than DEFAULTS_VERSION (a row without a
+    version is version 1); the cameras table, which does not train, never."""
+    from bench.report import DEFAULTS_VERSION
+    from bench.run import plan, spec_key, stale_specs
+
+    specs = plan(False)
+    knob = next(s for s in specs if s.get("knob") == "grid=128")
+    plain = next(s for s in specs if s["scene"] == "jar" and not s.get("knob") and s.get("kind") != "cameras")
+    table = next(s for s in specs if s.get("kind") == "cameras")
+    current = next(s for s in specs if s["scene"] == "book" and s.get("kind") != "cameras")
+    path = _write(tmp_path, [{**knob, "defaults": DEFAULTS_VERSION - 1}, {**plain}, {**table},
+                             {**current, "defaults": DEFAULTS_VERSION}])
+    picked = [spec_key(s) for s in stale_specs(specs, path)]
+    assert len(picked) == 2 and set(picked) == {spec_key(plain), spec_key(knob)}
+    assert stale_specs([current, table], path) == []
