@@ -150,7 +150,7 @@ def plan(quick: bool) -> list[dict]:
                       "exposure+specular held-out, effect-free training", "exposure", "exposure, appearance",
                       "exposure+specular, view shading", "exposure+specular, appearance + view shading",
                       "view shading")]
-    out += [{"scene": "dtu", "cameras": "sfm", "preset": p} for p in ("fast", "default", "balanced")]
+    out += [{"scene": "dtu", "cameras": "sfm", "preset": p} for p in ("fast", "default", "balanced", "quality")]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "balanced"}]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "default", "knob": "view selection", "ablation": True}]
     out += [{"scene": "dtu", "cameras": "sfm", "preset": "default", "knob": k, "ablation": True}
