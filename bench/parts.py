@@ -41,12 +41,11 @@ class Truth:
     """The scene's true cameras of every photo the arm mapped, and the similarity true world → SfM frame."""
 
     def __init__(self, syn: Path, full: Path):
-        held = load_cameras(syn / "gt" / "heldout" / "cameras.npz")
-        self.of = ev.true_cameras_of(load_cameras(syn / "gt" / "cameras.npz"), held)
+        train, held = load_cameras(syn / "gt" / "cameras.npz"), load_cameras(syn / "gt" / "heldout" / "cameras.npz")
+        self.of = ev.true_cameras_of(train, held)
         self.held, self.names = held, [p.stem for p in list_images(full / "images")]
         self.est = load_cameras(full / "cameras.npz")
-        _, _, (self.s, self.R, self.t) = ev.true_in_sfm_frame(load_cameras(syn / "gt" / "cameras.npz"), held,
-                                                              self.names, self.est)
+        _, _, (self.s, self.R, self.t) = ev.true_in_sfm_frame(train, held, self.names, self.est)
 
     def write_in_sfm_frame(self, names: list[str], like: Path, out: Path) -> None:
         """The true cameras of ``names`` in SfM's frame, with the scale_mat and support plane of ``like``."""
