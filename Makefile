@@ -32,12 +32,12 @@ node_modules/.installed: package.json
 
 # lint (ruff: pyflakes, pycodestyle, import order, bugbear; pyproject.toml) then every test, in two pytest-xdist
 # workers (a test file stays in one worker, so its fixtures are built once; tests/conftest.py gives each worker one
-# thread of the 2 cores)
+# thread of the 2 cores and hands out the files with slow tests first, in its order: --no-loadscope-reorder)
 lint: setup
 	$(PY) -m ruff check .
 
 test: lint
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 test-fast: setup
 	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow"

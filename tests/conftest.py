@@ -18,6 +18,23 @@ torch.set_num_threads(THREADS)
 cv2.setNumThreads(THREADS)
 
 
+def pytest_collection_modifyitems(config, items):
+    """The files in the order the two workers of ``make test`` take them (``--dist loadfile --no-loadscope-reorder``):
+    those with a test marked slow first, in their order, then the others by their number of tests, most first
+    (pytest-xdist's own reorder, by the number of tests alone, sends the one-test files last, so the slowest of them,
+    2-3 minutes, ran on one worker after the other had finished)."""
+    files: dict[str, list] = {}
+    for item in items:
+        files.setdefault(item.nodeid.split("::")[0], []).append(item)
+
+    def rank(f: list) -> tuple[bool, int]:
+        slow = any(i.get_closest_marker("slow") for i in f)
+        return not slow, 0 if slow else -len(f)
+
+    order = sorted(files.values(), key=rank)
+    items[:] = [item for f in order for item in f]
+
+
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)
