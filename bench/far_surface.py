@@ -47,11 +47,17 @@ def truth_in_sfm_frame(syn: Path, ws: Path) -> trimesh.Trimesh:
     return gt
 
 
+def view_background_depths(points: torch.Tensor, data) -> tuple[torch.Tensor, torch.Tensor]:
+    """(V, N) pixels from each point's projection to each view's nearest object pixel (0 on the object; capped at
+    10⁴ where a mask has no object pixel), and (V, N) whether the view sees the point (:func:`mask_lookup`)."""
+    depth = torch.from_numpy(np.minimum(background_distance(data.masks), 1e4)).float()
+    return mask_lookup(points, data.P, depth, data.sizes)
+
+
 def background_depth(points: np.ndarray, data) -> np.ndarray:
     """(N,) pixels from each point's projection to the nearest object pixel of the mask that puts it deepest into
     its background (0 where every view that sees it calls it object)."""
-    depth = background_distance(data.masks)
-    vals, seen = mask_lookup(torch.from_numpy(points).float(), data.P, torch.from_numpy(depth).float(), data.sizes)
+    vals, seen = view_background_depths(torch.from_numpy(points).float(), data)
     return torch.where(seen, vals, torch.zeros_like(vals)).max(0).values.numpy()
 
 

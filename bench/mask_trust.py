@@ -19,8 +19,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.far_surface import view_background_depths  # noqa: E402
 from dvr.data import list_images, load_scene  # noqa: E402
-from dvr.hull import background_distance, grid_points, hull_inside, mask_lookup  # noqa: E402
+from dvr.hull import grid_points, hull_inside  # noqa: E402
 from dvr.trainer import TrainConfig, carve_rules, training_frame  # noqa: E402
 
 
@@ -32,8 +33,7 @@ def hull_depths(ws: Path, res: int) -> list[np.ndarray]:
     data = training_frame(cfg, data)
     inside = hull_inside(data.P, data.masks, res, **carve_rules(cfg, data))
     points = grid_points(res)[torch.from_numpy(inside.reshape(-1))]
-    depth = torch.from_numpy(np.minimum(background_distance(data.masks), 1e4)).float()
-    vals, seen = mask_lookup(points, data.P, depth, data.sizes)
+    vals, seen = view_background_depths(points, data)
     to_400 = 500.0 / data.sizes.double().norm(dim=1).numpy()
     return [vals[v][seen[v]].numpy() * to_400[v] for v in range(len(to_400))]
 

@@ -355,21 +355,24 @@ def carve_rules(cfg: TrainConfig, data: SceneData, near: torch.Tensor | None = N
                 ground=data.cams.ground, sizes=data.sizes, near=near)
 
 
-def training_frame(cfg: TrainConfig, data: SceneData) -> SceneData:
+def training_frame(cfg: TrainConfig, data: SceneData, near: torch.Tensor | None = None) -> SceneData:
     """The scene as training sees it: with ``fit_frame``, reframed so that the working sphere is the visual hull's
-    bounding sphere (as it is when the hull is empty or fills the sphere, or without ``fit_frame``)."""
+    bounding sphere (as it is when the hull is empty or fills the sphere, or without ``fit_frame``). ``near``: as
+    :func:`carve_rules` takes it."""
     if not cfg.fit_frame:
         return data
-    sphere = hull_bounding_sphere(data.P, data.masks, cfg.hull_res, margin=cfg.frame_margin, **carve_rules(cfg, data))
+    sphere = hull_bounding_sphere(data.P, data.masks, cfg.hull_res, margin=cfg.frame_margin,
+                                  **carve_rules(cfg, data, near))
     return data if sphere is None else data.reframe(*sphere)
 
 
-def initial_inside(cfg: TrainConfig, data: SceneData) -> tuple[np.ndarray, PhotoCarveResult | None]:
+def initial_inside(cfg: TrainConfig, data: SceneData,
+                   near: torch.Tensor | None = None) -> tuple[np.ndarray, PhotoCarveResult | None]:
     """The initial occupancy, a (hull_res+1)³ bool lattice: the visual hull; with ``photo_hull``, less what the
     photo hull carves at its own, finer lattice (where it carves nothing, the visual hull exactly), and what it
-    did."""
+    did. ``near``: as :func:`carve_rules` takes it."""
 
-    rules = carve_rules(cfg, data)
+    rules = carve_rules(cfg, data, near)
 
     def visual_hull(res: int) -> np.ndarray:
         return hull_inside(data.P, data.masks, res, **rules)
@@ -389,8 +392,9 @@ class Trainer:
     def __init__(self, cfg: TrainConfig, data: SceneData, out_dir: Path):
         t_setup = time.perf_counter()
         self.cfg = cfg
-        self.data = data = training_frame(cfg, data)
-        self.near = sure_background(cfg, data)  # once: a distance transform of every mask
+        # once, a distance transform of every mask (reframing moves the cameras, not the masks)
+        self.near = sure_background(cfg, data)
+        self.data = data = training_frame(cfg, data, self.near)
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.device = data.masks.device
@@ -444,7 +448,7 @@ class Trainer:
     def _initial_logits(self) -> torch.Tensor:
         """The initial occupancy's logit volume (:func:`initial_inside`); the photo hull's counts, with
         ``photo_hull``, to ``photo_hull.json``."""
-        inside, carving = initial_inside(self.cfg, self.data)
+        inside, carving = initial_inside(self.cfg, self.data, self.near)
         if carving is not None:
             summary = {k: (v if math.isfinite(v) else None) for k, v in vars(carving).items() if k != "inside"}
             (self.out / "photo_hull.json").write_text(json.dumps(summary, indent=1))
