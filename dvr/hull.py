@@ -19,26 +19,29 @@ from .fields import evaluate_in_chunks
 def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, sizes: torch.Tensor | None = None):
     """Mask value of every point in every view: (N, M) values in [0, 1] and (N, M) 'seen' flags.
 
-    ``masks`` is (N, H, W) float; a point is seen by a view when it is in front of the camera and projects
-    inside the image — inside its own (width, height) of ``sizes`` (N, 2) when the views differ in size and the
-    masks are padded to a common canvas (top-left aligned). Bilinear lookup with pixel centres at +0.5
-    (``align_corners=False``).
+    ``masks`` is (N, H, W) float, or (N, C, H, W) for C maps per view read at one projection (values (N, C, M)); a
+    point is seen by a view when it is in front of the camera and projects inside the image — inside its own (width,
+    height) of ``sizes`` (N, 2) when the views differ in size and the masks are padded to a common canvas (top-left
+    aligned). Bilinear lookup with pixel centres at +0.5 (``align_corners=False``).
     """
-    N, H, W = masks.shape
+    N, H, W = masks.shape[0], masks.shape[-2], masks.shape[-1]
     uv, z = project(points.to(P.dtype), P)
     w_v = torch.full((N, 1), float(W), device=P.device) if sizes is None else sizes[:, :1].to(uv.dtype)
     h_v = torch.full((N, 1), float(H), device=P.device) if sizes is None else sizes[:, 1:].to(uv.dtype)
     seen = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= w_v) & (uv[..., 1] >= 0) & (uv[..., 1] <= h_v)
     g = torch.stack([uv[..., 0] / W * 2 - 1, uv[..., 1] / H * 2 - 1], dim=-1).to(masks.dtype)
     g = torch.nan_to_num(g, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2, 2)
-    vals = F.grid_sample(masks[:, None], g[:, :, None, :], mode="bilinear", align_corners=False, padding_mode="zeros")
-    return vals[:, 0, :, 0], seen
+    maps = masks[:, None] if masks.ndim == 3 else masks
+    vals = F.grid_sample(maps, g[:, :, None, :], mode="bilinear", align_corners=False, padding_mode="zeros")
+    return (vals[:, 0, :, 0] if masks.ndim == 3 else vals[..., 0]), seen
 
 
 def view_votes(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, sizes: torch.Tensor | None = None):
     """For each point, how many views see it outside their mask (mask value < 0.5) and how many see it at all: two
-    (N,) counts (:func:`mask_lookup`)."""
+    (N,) counts (:func:`mask_lookup`); with (V, C, H, W) ``masks`` the first is (C, N), one count per map."""
     vals, seen = mask_lookup(points, P, masks, sizes)
+    if masks.ndim == 4:
+        return ((vals < 0.5) & seen[:, None]).sum(0), seen.sum(0)
     return ((vals < 0.5) & seen).sum(0), seen.sum(0)
 
 
@@ -80,7 +83,10 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
 
     def outside(p: torch.Tensor) -> torch.Tensor:
         """The test above for one chunk of points."""
-        n_out, n_seen = view_votes(p, P, masks, sizes)
+        if near is None:
+            n_out, n_seen = view_votes(p, P, masks, sizes)
+        else:  # the masks and their sure-background maps read at one projection
+            (n_out, n_far), n_seen = view_votes(p, P, torch.stack([masks, near], dim=1), sizes)
         need = torch.clamp(n_seen, min=1, max=min_views)
         need = torch.where(n_seen < sparse_views, torch.ones_like(need), need)
         if ground is not None:
@@ -89,7 +95,7 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
                 need = torch.where(in_contact_band(hgt, contact_band), torch.clamp(need, min=2), need)
         free = (n_out >= need) | (n_seen == 0)
         if near is not None:
-            free |= view_votes(p, P, near, sizes)[0] > 0
+            free |= n_far > 0
         if ground is not None:
             free |= hgt < 0
         return free

@@ -108,6 +108,26 @@ def test_one_mask_carves_where_the_point_lies_far_inside_its_background():
         P, masks, res=8, min_views=2).sum()
 
 
+def test_stacked_maps_read_at_one_projection_equal_each_map_read_alone(small_ws):
+    """mask_lookup / view_votes of (V, C, H, W) maps (the masks and their sure-background maps, one projection) give
+    each map's own values and counts; outside_hull with ``near`` equals its rule spelled out from separate lookups."""
+    from dvr.hull import view_votes
+
+    data = load_scene(small_ws, torch.device("cpu"))
+    near = near_object(data.masks, 3.0)
+    pts = grid_points(16)
+    vals, seen = mask_lookup(pts, data.P, torch.stack([data.masks, near], dim=1), data.sizes)
+    for c, maps in enumerate((data.masks, near)):
+        alone, seen_alone = mask_lookup(pts, data.P, maps, data.sizes)
+        assert torch.equal(vals[:, c], alone) and torch.equal(seen, seen_alone)
+    (n_out, n_far), n_seen = view_votes(pts, data.P, torch.stack([data.masks, near], dim=1), data.sizes)
+    assert torch.equal(n_out, view_votes(pts, data.P, data.masks, data.sizes)[0])
+    assert torch.equal(n_far, view_votes(pts, data.P, near, data.sizes)[0])
+    reference = outside_hull(pts, data.P, data.masks, min_views=2, sizes=data.sizes) | (n_far > 0)
+    got = outside_hull(pts, data.P, data.masks, min_views=2, sizes=data.sizes, near=near)
+    assert torch.equal(got, reference) and (got & ~outside_hull(pts, data.P, data.masks, min_views=2)).any()
+
+
 @pytest.mark.parametrize("full", [False, True])
 def test_hull_lattice_projects_only_the_sphere_and_equals_the_whole_lattice_test(small_ws, full):
     """hull_inside tests only the lattice points inside the unit sphere (about half of them: the masks stage builds
