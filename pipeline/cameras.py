@@ -48,6 +48,7 @@ from .photos import (
 from .pose_sanity import axes_convergence, model_views, pose_sanity
 from .sfm import (
     RUNG_NAMES,
+    colmap_warnings_only,
     ladder,
     model_stats,
     read_stage_model,
@@ -762,18 +763,8 @@ def run(job: Job) -> Done:
     if len(photos) < 3:
         raise StageError(f"{images}: {len(photos)} usable photo(s); at least 3 are needed (20–60 around the object is "
                          "typical)")
-    if given is not None and given.is_dir():
-        info = import_colmap_model(ws, photos, images, given, cfg)
-    elif given is not None:
-        info = import_cameras(ws, photos, given, cfg)
-    else:
-        try:
-            rec, inp, ladder_info = run_sfm(ws, photos, cfg)
-            info = report_sfm(rec, [p.stem for p in photos], cfg)
-            info.update(ladder_info)
-            info.update(export_model(ws, rec, inp, cfg, [p.stem for p in photos]))
-        except StageError as exc:  # SfM cannot pose them (a symmetric object): a printed board in view still can
-            info = export_board_cameras(ws, photos, cfg, require_board_cameras(photos, cfg, exc), str(exc))
+    with colmap_warnings_only():
+        info = pose_photos(ws, photos, images, given, cfg)
     print(f"cameras: {len(info['views'])} views → {ws.cameras}")
     if video is not None:
         info["video"] = video
@@ -781,6 +772,23 @@ def run(job: Job) -> Done:
     if spread is not None:
         info["exposure_spread"] = round(spread, 4)
     return Done({k: v for k, v in info.items() if k != "views"})
+
+
+def pose_photos(ws: Workspace, photos: list[Path], images: Path, given: Path | None, cfg: CamerasConfig) -> dict:
+    """The cameras of ``photos``: from a given COLMAP model folder or cameras.npz, else by the SfM ladder, else (SfM
+    cannot pose them: a symmetric object) by a printed board in view. Returns the stage's record."""
+    if given is not None and given.is_dir():
+        return import_colmap_model(ws, photos, images, given, cfg)
+    if given is not None:
+        return import_cameras(ws, photos, given, cfg)
+    try:
+        rec, inp, ladder_info = run_sfm(ws, photos, cfg)
+        info = report_sfm(rec, [p.stem for p in photos], cfg)
+        info.update(ladder_info)
+        info.update(export_model(ws, rec, inp, cfg, [p.stem for p in photos]))
+        return info
+    except StageError as exc:  # SfM cannot pose them (a symmetric object): a printed board in view still can
+        return export_board_cameras(ws, photos, cfg, require_board_cameras(photos, cfg, exc), str(exc))
 
 
 def record_exposure(ws: Workspace) -> float | None:

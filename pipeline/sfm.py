@@ -28,10 +28,27 @@ import shutil
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
+
+
+@contextmanager
+def colmap_warnings_only():
+    """COLMAP's log in this process (the undistortion's line per photo, the adjustments' reports) at warnings and
+    errors only while inside: the rungs' own logs go to their files, and a user's terminal should show the stage's
+    lines, not 50 of COLMAP's per photo. The level before is restored on the way out."""
+    import pycolmap
+
+    before = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = before
+
 
 RUNG_NAMES = ("default", "guided", "dsp", "relaxed", "global", "merge")
 
