@@ -219,6 +219,32 @@ def appearance_section(ws: Workspace) -> str:
             f"</th><th>gain R</th><th>gain G</th><th>gain B</th></tr>{rows}</table>")
 
 
+def readable(value, nested: bool = False) -> str:
+    """A stage's record as a person reads it: ``key: value`` pairs, numbers to four significant digits, short lists of
+    numbers as they are, longer lists and lists of records by their length (the full record stays in the raw JSON
+    beside it)."""
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, dict):
+        inner = ", ".join(f"{k}: {readable(v, True)}" for k, v in value.items())
+        return f"({inner})" if nested else inner
+    if isinstance(value, (list, tuple)):
+        if not value:
+            return "none"
+        if len(value) <= 4 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            return "[" + ", ".join(readable(v) for v in value) + "]"
+        return f"{len(value)} entr{'y' if len(value) == 1 else 'ies'}"
+    return str(value)
+
+
+def stage_row(stage: str, seconds: float, record: dict) -> str:
+    """One row of the report's stage table: the record readable, its raw JSON folded away beneath."""
+    return (f"<tr><td>{stage}</td><td>{seconds:.1f}</td><td>{html.escape(readable(record))}"
+            f"<details><summary>raw</summary><code>{html.escape(json.dumps(record))}</code></details></td></tr>")
+
+
 def build(ws: Workspace, stats: dict | None = None) -> str:
     """The self-contained HTML of the report: stage table, capture, masks, training curves, renders, viewer.
     ``stats`` (when given) receives the mean PSNR of the renders: ``psnr`` and ``psnr_views`` (held-out or training)."""
@@ -238,8 +264,7 @@ def build(ws: Workspace, stats: dict | None = None) -> str:
     for st in (s.name for s in STAGES):
         if st in stamps:
             det = {k: v for k, v in stamps[st].items() if k not in ("config", "seconds", "finished")}
-            parts.append(f"<tr><td>{st}</td><td>{secs.get(st, 0):.1f}</td><td><code>"
-                         f"{html.escape(json.dumps(det))}</code></td></tr>")
+            parts.append(stage_row(st, secs.get(st, 0), det))
         elif ws.unfinished(st) and st != "report":  # the report's own marker: this is that run
             parts.append(f"<tr><td>{st}</td><td>–</td><td><b>last run did not finish</b>: rerun it</td></tr>")
     parts.append(f"<tr><td><b>total</b></td><td><b>{sum(secs.values()):.1f}</b></td><td></td></tr></table>")

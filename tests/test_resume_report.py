@@ -125,6 +125,25 @@ def test_report_says_where_the_masks_footprint_came_from(tmp_path):
     assert not any("(True)" in s or "masks' hull)" in s for s in said.values())
 
 
+def test_stage_table_reads_as_words_and_keeps_the_raw_record():
+    """A stage's row: numbers to four significant digits, nested records in brackets, long lists by their length,
+    the text escaped; the full record as JSON in a folded element beside it, unchanged."""
+    import json
+
+    from pipeline.report import readable, stage_row
+
+    record = {"mean_reprojection_error": 0.4169242521923031, "rung": "default", "unregistered": [],
+              "support": {"normal": [-0.0198, -0.9481, -0.3175], "inliers": 236},
+              "floaters": [{"faces": 846}, {"faces": 854}], "note": "<b>"}
+    text = readable(record)
+    assert text == ("mean_reprojection_error: 0.4169, rung: default, unregistered: none, support: (normal: [-0.0198, "
+                    "-0.9481, -0.3175], inliers: 236), floaters: 2 entries, note: <b>")
+    row = stage_row("cameras", 17.81, record)
+    assert "<td>17.8</td>" in row and "&lt;b&gt;" in row and "<b>" not in row
+    raw = row.split("<code>")[1].split("</code>")[0]
+    assert json.loads(raw.replace("&quot;", '"').replace("&lt;", "<").replace("&gt;", ">")) == record
+
+
 def test_unreadable_training_record_starts_afresh(tmp_path):
     """model/config.json says which config a checkpoint belongs to; left empty or damaged (a killed run, a hand),
     it is no record: the checkpoint is discarded and training starts afresh (was: json's "Expecting value" as the
