@@ -2,9 +2,9 @@
 
 OpenCV is loaded first, on purpose: pycolmap 4.2's extension carries its own zlib and exports it, and when it is
 the first of the two to load, OpenCV's PNG writer later frees memory of the wrong zlib and the process aborts
-(``import pycolmap, cv2`` then ``cv2.imwrite("x.png", …)``; the other order is fine). Every ``import pycolmap`` in
-this package runs after this module, so after OpenCV; a script that imported pycolmap itself before this package
-gets a one-line warning naming the fix.
+(``import pycolmap, cv2`` then ``cv2.imwrite("x.png", …)``; the other order is fine). This package loads pycolmap
+only through :mod:`pipeline.colmaplib`, after this module, so after OpenCV; a script that imported pycolmap itself
+before this package gets a one-line warning naming the fix.
 """
 
 import sys as _sys

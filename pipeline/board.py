@@ -248,7 +248,7 @@ def to_board_frame(fit: BoardFit, Rs: np.ndarray, ts: np.ndarray, pts: np.ndarra
 
 def transform_model(fit: BoardFit, model_dir: Path) -> None:
     """Move a COLMAP model on disk into the board's frame (later stages read its points beside cameras.npz)."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     rec = pycolmap.Reconstruction(model_dir)
     rec.transform(pycolmap.Sim3d(fit.scale, pycolmap.Rotation3d(fit.R), fit.t))

@@ -38,6 +38,7 @@ from .board_poses import (
     write_board_json,
     write_board_views,
 )
+from .colmaplib import warnings_only
 from .exposure import measure_exposure, write_exposure
 from .photos import (
     PHOTO_EXTS,
@@ -48,7 +49,6 @@ from .photos import (
 from .pose_sanity import axes_convergence, model_views, pose_sanity
 from .sfm import (
     RUNG_NAMES,
-    colmap_warnings_only,
     ladder,
     model_stats,
     read_stage_model,
@@ -505,7 +505,7 @@ def prefer_pinhole(rec, tolerance: float, threads: int = -1):
     length to 0.01 % at the same reprojection error; undistorting by the spurious model cost ~13 dB held-out
     PSNR. A real lens keeps its distortion because a pinhole explains its tracks clearly worse.
     """
-    import pycolmap
+    from .colmaplib import pycolmap
 
     if tolerance < 0:
         return rec, []
@@ -559,8 +559,9 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
                  scale_mat: np.ndarray | None = None) -> dict:
     """Undistort the model to PINHOLE, write images/, cameras.npz and points.ply; ``scale_mat``: the object's sphere
     as given with the cameras (else found from the points)."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
+    warnings_only()  # an adjustment before turned COLMAP's info lines on: two per photo here
     und = ws.root / "sfm" / "undistorted"
     if und.exists():
         shutil.rmtree(und)
@@ -721,7 +722,7 @@ def triangulate_given(ws: Workspace, photos: list[Path], cfg: CamerasConfig, giv
 def import_colmap_model(ws: Workspace, photos: list[Path], images: Path, model: Path, cfg: CamerasConfig) -> dict:
     """Use a given COLMAP sparse model (cameras/images/points3D .bin or .txt, image names relative to the photo
     folder): skip SfM, undistort and normalise as after our own SfM."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     try:
         rec = pycolmap.Reconstruction(model)
@@ -763,8 +764,7 @@ def run(job: Job) -> Done:
     if len(photos) < 3:
         raise StageError(f"{images}: {len(photos)} usable photo(s); at least 3 are needed (20–60 around the object is "
                          "typical)")
-    with colmap_warnings_only():
-        info = pose_photos(ws, photos, images, given, cfg)
+    info = pose_photos(ws, photos, images, given, cfg)
     print(f"cameras: {len(info['views'])} views → {ws.cameras}")
     if video is not None:
         info["video"] = video

@@ -28,27 +28,10 @@ import shutil
 import subprocess
 import sys
 import time
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
-
-
-@contextmanager
-def colmap_warnings_only():
-    """COLMAP's log in this process (the undistortion's line per photo, the adjustments' reports) at warnings and
-    errors only while inside: the rungs' own logs go to their files, and a user's terminal should show the stage's
-    lines, not 50 of COLMAP's per photo. The level before is restored on the way out."""
-    import pycolmap
-
-    before = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = before
-
 
 RUNG_NAMES = ("default", "guided", "dsp", "relaxed", "global", "merge")
 
@@ -111,7 +94,7 @@ def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera
              per_image: bool = False, threads: int = -1) -> None:
     """The rung's features into ``db``: one shared camera per group of images (a phone's portrait and landscape
     shots: two), or ``per_image`` a camera each; on ``threads`` threads (-1: all cores)."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
@@ -129,7 +112,7 @@ def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera
 def match_features(db: Path, n_images: int, rung: Rung, matching: str, seed: int, threads: int = -1) -> None:
     """Match and verify; ``seed``: the verification's RANSAC seed (with -1, guided DSP-SIFT matches were verified
     differently on every run)."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     opts = pycolmap.FeatureMatchingOptions()
     opts.guided_matching = rung.guided
@@ -145,7 +128,7 @@ def match_features(db: Path, n_images: int, rung: Rung, matching: str, seed: int
 
 def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "", threads: int = -1) -> dict:
     """Map with the rung's mapper; ``base``: a model folder to continue from (the ``extend`` mapper)."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     if rung.mapper == "global":
         opts = pycolmap.GlobalPipelineOptions()
@@ -169,6 +152,9 @@ def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camer
     """Child process: features (reused when another rung made them), matches (likewise), mapping; the largest
     model is written to ``work/<rung>/model`` and its timings to ``work/<rung>/result.json``. ``base``: (model
     folder, its database) to continue from instead (the ``extend`` mapper)."""
+    from .colmaplib import info_to_stderr
+
+    info_to_stderr()  # COLMAP's info lines are this rung's log
     r = Rung(**rung)
     work_p, images_p = Path(work), Path(images)
     if base is not None:
@@ -215,7 +201,7 @@ def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, came
     ``base``: (model folder, its database) for the ``extend`` mapper to continue from; ``threads``: COLMAP's
     threads (-1: all cores; 1: the same photos give the same model). Returns (model or None, database path,
     seconds per step, error or None)."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     args = [str(work), str(images), groups, asdict(rung), camera_model, matching, seed,
             None if base is None else [str(base[0]), str(base[1])], threads]
@@ -240,7 +226,7 @@ def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, R
     """Sparse points of photos whose cameras are given (``images/<name>.png``; intrinsics for those pixels, world →
     camera poses): the default rung's SIFT features and matches, then COLMAP's point triangulator at the given
     poses (no mapping, no pose refinement). Returns the model; its database is ``work/given.db``."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     work.mkdir(parents=True, exist_ok=True)
     db = work / "given.db"
@@ -281,7 +267,7 @@ def refine_model(rec, passes: int, error_ratio: float, min_points_per_view: int 
     the rotation error at 0.059°, and this halves it (0.030°; the held-out photos' silhouettes then line up with the
     mesh). Returns (model, notes); the model as given, with a note, when a view would keep fewer than
     ``min_points_per_view`` points or the adjustment diverges."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     if passes <= 0:
         return rec, []
@@ -313,7 +299,7 @@ def retriangulate(rec, database: Path, images: Path, work: Path, seed: int = 0, 
     above the error threshold to fit the poses, and with them a quarter to half of the sparse depths on the object
     (the cow 212 → 110, the book 7768 → 5879), which the depth loss needs; at the adjusted poses most of those
     observations fit again. Returns (model, note)."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
@@ -329,7 +315,7 @@ def retriangulate(rec, database: Path, images: Path, work: Path, seed: int = 0, 
 def copy_unverified(database: Path, out: Path) -> None:
     """A copy ``out`` of the COLMAP ``database`` with its stored matches and without their verification (no two-view
     geometries), for a verification of its own."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     shutil.copy(database, out)
     db = pycolmap.Database.open(str(out))
@@ -344,7 +330,7 @@ def verify_again(database: Path, out: Path, max_h_inlier_ratio: float, seed: int
     seeded with ``seed``). On an unguided rung the same verified matches as matching again (the cow's 20 photos of
     960 × 720: 25 354 both), in 33 s instead of 35 (RANSAC is the cost). A guided rung's guided search is not done
     again. :func:`verify_at_poses` needs no RANSAC (``cameras.object_verification``)."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     copy_unverified(database, out)
     geometry = pycolmap.TwoViewGeometryOptions()
@@ -360,7 +346,7 @@ def verify_at_poses(rec, database: Path, out: Path, threads: int = -1) -> None:
     ``rec`` (COLMAP's guided geometric verifier, as hloc triangulates from known poses): each pair keeps the matches
     within COLMAP's epipolar error of its known relative pose, however many lie on one plane. No RANSAC: 0.2 s for
     the 190 pairs of 20 photos of 960 × 720 (309 object matches; :func:`verify_again` 33 s, 240)."""
-    import pycolmap
+    from .colmaplib import pycolmap
 
     copy_unverified(database, out)
     pycolmap.guided_geometric_verification(rec, out, num_threads=threads)
@@ -370,8 +356,7 @@ def verify_at_poses(rec, database: Path, out: Path, threads: int = -1) -> None:
 def read_stage_model(path: Path):
     """The cameras stage's undistorted COLMAP model at ``path``, as a later stage reads it; StageError naming it when
     pycolmap cannot (a cameras run killed while COLMAP wrote it: the folder comes before its files)."""
-    import pycolmap
-
+    from .colmaplib import pycolmap
     from .workspace import StageError
 
     try:

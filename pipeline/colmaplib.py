@@ -1,0 +1,33 @@
+"""pycolmap as this package uses it: every module imports it from here (``from .colmaplib import pycolmap``).
+
+Loading it here does two things once per process. OpenCV is loaded first (by ``pipeline/__init__``, which runs
+before any module of the package: pycolmap loaded before OpenCV makes OpenCV's PNG writer abort). And COLMAP's
+logger (glog) writes no log files: by default it leaves a set of them for every process in the system's temporary
+folder (``/tmp/<host>.<user>.log.INFO.<date>.<pid>`` and one per warning level), outside the workspace and never
+removed. Its info lines are kept off the terminal (:func:`warnings_only`; warnings and errors still reach it), but
+pycolmap's bundle adjustment turns them back on at every call, so the code that runs one in this process calls
+:func:`warnings_only` again before COLMAP's next chatty step (the undistortion's two lines per photo). The SfM
+rungs' child processes put the info lines back (:func:`info_to_stderr`): their output is the rung's log in the
+workspace.
+"""
+
+from __future__ import annotations
+
+import pycolmap  # after OpenCV: this module's package, pipeline/__init__, loaded it
+
+for _level in (pycolmap.logging.INFO, pycolmap.logging.WARNING, pycolmap.logging.ERROR, pycolmap.logging.FATAL):
+    pycolmap.logging.set_log_destination(_level, "")  # no log files
+
+
+def warnings_only() -> None:
+    """COLMAP's warnings and errors to stderr, its info lines nowhere."""
+    pycolmap.logging.alsologtostderr = False
+    pycolmap.logging.stderrthreshold = int(pycolmap.logging.WARNING)
+
+
+def info_to_stderr() -> None:
+    """COLMAP's info lines to this process' stderr too (a child whose output is a log file); still no log files."""
+    pycolmap.logging.alsologtostderr = True
+
+
+warnings_only()
