@@ -161,15 +161,31 @@ def _stage_device(config, stage_name: str) -> str | None:
     return getattr(getattr(config or Config(), section), "device", None) if section else None
 
 
-def _start_ray(address: str | None):
-    """Connect to the cluster at ``address``, or start a local one (quiet: stages log to their workspace)."""
+LOCAL_RAY = {"object_store_memory": 256 * 1024**2}
+"""``ray.init``'s resources for the local cluster a batch starts when it is given no address."""
+
+
+@contextlib.contextmanager
+def _ray(address: str | None):
+    """Ray connected to the cluster at ``address``, or a local one (:data:`LOCAL_RAY`), quiet (stages log to their
+    workspace), shut down on the way out. A local cluster keeps its session files (sockets, worker logs) in a
+    temporary folder of its own, removed at shutdown: Ray's default, ``/tmp/ray/session_*``, keeps every run's forever
+    (117 sessions, 24 MB on this machine from the batch tests)."""
     import logging
+    import shutil
+    import tempfile
 
     import ray
 
-    kw = {"address": address} if address else {"object_store_memory": 256 * 1024**2}
-    ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING, **kw)
-    return ray
+    temp = None if address else tempfile.mkdtemp(prefix="dvr-ray-")  # short: Ray's socket paths have a limit
+    kw = {"address": address} if address else {**LOCAL_RAY, "_temp_dir": temp}
+    try:
+        ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING, **kw)
+        yield ray
+    finally:
+        ray.shutdown()
+        if temp is not None:
+            shutil.rmtree(temp, ignore_errors=True)
 
 
 def _progress_line(rec: dict, done: int, total: int) -> str:
@@ -262,12 +278,9 @@ def run_batch(captures: Path, out: Path, config=None, batch: BatchConfig | None 
             print(f"{c.name}: up to date ({c.workspace / 'mesh' / 'textured.glb'})")
     t0 = time.perf_counter()
     if todo:
-        ray = _start_ray(batch.address)
-        try:
+        with _ray(batch.address) as ray:
             chains = _Chains(ray, config, batch)
             for cap in todo:
                 chains.start(cap)
             _collect(ray, chains, records, len(todo) * len(STAGES))
-        finally:
-            ray.shutdown()
     return write_summary(out, caps, records, time.perf_counter() - t0)

@@ -4,6 +4,7 @@ work."""
 import json
 import os
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -52,27 +53,29 @@ def test_capture_sources_follow_the_stage_table():
 
 def _local_ray_with_one_gpu(monkeypatch, cpus: int) -> None:
     """The batch's local Ray cluster declares one GPU (Ray schedules it whether or not the machine has one)."""
-    import logging
-
-    import ray
-
     import pipeline.batch as batch_module
 
-    def start(address):
-        ray.init(num_cpus=cpus, num_gpus=1, include_dashboard=False, log_to_driver=False,
-                 logging_level=logging.WARNING, object_store_memory=128 * 1024**2)
-        return ray
-
-    monkeypatch.setattr(batch_module, "_start_ray", start)
+    monkeypatch.setattr(batch_module, "LOCAL_RAY", {"num_cpus": cpus, "num_gpus": 1,
+                                                    "object_store_memory": 128 * 1024**2})
 
 
 def test_batch_good_and_bad_capture_then_nothing_to_do(small_ws, tmp_path, capsys, monkeypatch):
+    import tempfile
+
     from pipeline.config import config_from_args
 
     _local_ray_with_one_gpu(monkeypatch, cpus=2)  # none is here: the stage's device stays the CPU
     captures, out = _captures(small_ws, tmp_path), tmp_path / "out"
     cfg = config_from_args(None, TINY)
+    rays_default = Path(tempfile.gettempdir()) / "ray"
+    sessions_before = set(rays_default.iterdir()) if rays_default.exists() else set()
+    made = []
+    mkdtemp = tempfile.mkdtemp
+    monkeypatch.setattr(tempfile, "mkdtemp", lambda *a, **k: made.append(mkdtemp(*a, **k)) or made[-1])
     summary = run_batch(captures, out, cfg, BatchConfig(cpus_per_stage=1))
+    # the local cluster's session files went to a folder of its own, gone after the batch; none to Ray's default
+    assert len(made) == 1 and not Path(made[0]).exists()
+    assert (set(rays_default.iterdir()) if rays_default.exists() else set()) == sessions_before
     rows = {r["capture"]: r for r in summary["rows"]}
     assert rows["good"]["train_gpu"] is True and rows["good"]["train_device"] == "cpu"  # Ray gave training the GPU
     assert (out / "good" / "mesh" / "textured.glb").exists() and rows["good"]["status"] == "done"
