@@ -54,10 +54,10 @@ def object_px(rec, gt_pixels: dict[str, np.ndarray], gt_centres: dict[str, np.nd
 
 
 def main() -> None:
-    import pycolmap
     import trimesh
 
     from dvr.cameras import load_cameras, project_points
+    from pipeline.colmaplib import pycolmap
     from pipeline.sfm import refine_model
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

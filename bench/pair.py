@@ -69,7 +69,7 @@ def from_mapping(mapping: Path):
     """A stand-in for :func:`pipeline.cameras.map_photos` that returns the saved mapping of ``mapping`` (its SfM
     input folder copied into the new workspace, so that paths inside it stay valid) and the ladder's rung that
     mapped it (which decides the final adjustment's passes)."""
-    import pycolmap
+    from pipeline.colmaplib import pycolmap
 
     rung = mapped_rung(mapping)
 
