@@ -138,10 +138,10 @@ class MasksConfig:
 
 
 # ----------------------------------------------------------------------------- user masks
-def read_user_masks(names: list[str], sizes: list[tuple[int, int]], mask_dir: Path, cfg: MasksConfig
-                    ) -> dict[str, np.ndarray]:
-    """Masks given by the user (``mask_dir``, matched by stem), every one checked to be binary and of the photo's
-    aspect before any is kept: per name the mask resized to its image (``sizes``: (width, height) per name), bool."""
+def mask_files(names: list[str], mask_dir: Path) -> dict[str, Path]:
+    """The user's mask file of each photo stem in ``names`` (``mask_dir``, matched by stem, any image extension);
+    StageError naming the folder and the fix when it is no folder, holds two masks of one photo or lacks one. Also
+    run by :func:`pipeline.stages.reconstruct` on the photo folder before SfM, so a missing mask is said at once."""
     if not mask_dir.is_dir():
         raise StageError(f"{mask_dir}: not a folder; pass --masks-dir DIR with one mask per photo (same file name)")
     files = {}
@@ -153,6 +153,14 @@ def read_user_masks(names: list[str], sizes: list[tuple[int, int]], mask_dir: Pa
     if missing:
         raise StageError(f"{mask_dir}: no mask for {', '.join(missing[:5])}{'...' if len(missing) > 5 else ''}; "
                          "name each mask like its photo (any image extension)")
+    return files
+
+
+def read_user_masks(names: list[str], sizes: list[tuple[int, int]], mask_dir: Path, cfg: MasksConfig
+                    ) -> dict[str, np.ndarray]:
+    """Masks given by the user (``mask_dir``, matched by stem), every one checked to be binary and of the photo's
+    aspect before any is kept: per name the mask resized to its image (``sizes``: (width, height) per name), bool."""
+    files = mask_files(names, mask_dir)
     resized = {}
     for n, (w, h) in zip(names, sizes):
         m = cv2.imread(str(files[n]), cv2.IMREAD_GRAYSCALE)  # EXIF orientation applied, like the photos

@@ -319,6 +319,20 @@ def test_normalization_ignores_background_points():
     assert 0.5 < normalization(np.concatenate([obj, bg]), Ps, sizes, centers, dirs, 1.1, np.full(12, 300.0))[0, 0] < 1
 
 
+def test_reconstruct_names_a_missing_user_mask_before_sfm(photo_ws, tmp_path, capsys):
+    """``reconstruct --masks-dir`` with a photo whose mask is missing stops at once with the masks stage's one line,
+    before the cameras stage (it said so only after SfM: on DTU 17 s later), and writes nothing."""
+    syn, _ = photo_ws
+    (tmp_path / "m").mkdir()
+    for i in range(1, N_VIEWS):  # 000000's mask missing
+        shutil.copy(syn / "gt" / "masks" / f"{i:06d}.png", tmp_path / "m" / f"{i:06d}.png")
+    ws = tmp_path / "ws"
+    assert main(["reconstruct", str(ws), "--images", str(syn / "images"), "--masks-dir", str(tmp_path / "m")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "m: no mask for 000000; name each mask like its photo" in err[0]
+    assert not (ws / "cameras.npz").exists() and not (ws / ".stages" / "cameras.json").exists()
+
+
 def test_user_masks_validated(photo_ws, tmp_path, capsys):
     syn, ws0 = photo_ws
     ws = tmp_path / "ws"
