@@ -614,12 +614,12 @@ def test_floating_object_has_no_support_plane(photo_ws):
 
 def test_given_cameras_survive_a_failed_triangulation(small_ws, tmp_path, monkeypatch, capsys):
     """COLMAP failing on the given photos costs the sparse depth, never the given cameras: one warning line."""
-    from pipeline import cameras as cameras_stage
+    from pipeline import given_cameras
 
     def fails(*args, **kwargs):
         raise RuntimeError("no features")
 
-    monkeypatch.setattr(cameras_stage, "triangulate_at", fails)
+    monkeypatch.setattr(given_cameras, "triangulate_at", fails)
     ws = tmp_path / "given"
     assert main(["cameras", str(ws), "--images", str(small_ws / "images"), "--given-cameras",
                  str(small_ws / "cameras.npz")]) == 0
