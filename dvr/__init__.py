@@ -4,7 +4,7 @@ Modules: ``cameras`` (rays, unit-sphere bounds), ``fields`` (occupancy + texture
 interface, chunked evaluation), ``march`` (surface finding without autograd), ``implicit`` (the exact implicit
 depth gradient),
 ``losses``, ``hull`` (visual hull from masks), ``data`` (workspace loading, ray sampling),
-``trainer``, ``extract`` (hierarchical marching cubes), ``metrics``.
+``trainer``, ``checkpoint`` (saved fields, read back safely), ``extract`` (hierarchical marching cubes), ``metrics``.
 This package never imports ``pipeline``.
 """
 

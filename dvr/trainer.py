@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import pickle
 import random
 import time
 import warnings
@@ -21,9 +19,10 @@ from tqdm import tqdm
 from . import losses as L
 from .appearance import ViewAppearance
 from .cameras import in_contact_band, plane_height
+from .checkpoint import atomic_save, atomic_write_text, read_saved, save_model
 from .data import RaySampler, SceneData
 from .device import resolve_device
-from .fields import Field, FieldConfig, finite_difference_normals, make_field
+from .fields import FieldConfig, finite_difference_normals, make_field
 from .hull import (
     carve_along_rays,
     coarse_points,
@@ -263,75 +262,6 @@ def _set_seed(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
-def _atomic_save(obj, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
-def save_model(path: Path, model: Field, cfg: FieldConfig, scale_mat: np.ndarray, extra: dict | None = None,
-               frame: np.ndarray | None = None) -> None:
-    """``scale_mat`` maps the field's frame to the SfM frame; ``frame`` maps it to the normalized frame of
-    cameras.npz (identity when the field was trained in that frame); the support plane the field is clipped to
-    (field frame) is kept too."""
-    support = None if model.support is None else model.support.cpu().numpy()
-    _atomic_save({"field": model.state_dict(), "field_config": asdict(cfg), "scale_mat": scale_mat,
-                  "frame": np.eye(4) if frame is None else frame, "support": support, **(extra or {})}, path)
-
-
-# what torch.load and the reading of its dict raise on a file that is not what was saved: truncated or empty (a
-# disk filled, a copy cut short), another program's file, or a save of another version of this code
-_UNREADABLE = (OSError, EOFError, RuntimeError, ValueError, TypeError, KeyError, AttributeError, IndexError,
-               pickle.UnpicklingError)
-
-
-# what a save holds besides tensors and plain Python: numpy arrays (scale_mat, frame, support, numpy's RNG state).
-# An array pickles through the function its own __reduce__ names (numpy's private _reconstruct, whose module moved
-# from numpy.core to numpy._core in numpy 2): asked of numpy, not spelled out, so no private path is named here.
-_NUMPY_GLOBALS = [np.dtype, np.ndarray, np.zeros(1).__reduce__()[0]] + \
-    [type(np.dtype(t)) for t in (np.float64, np.float32, np.int64, np.int32, np.uint32, np.uint8, np.bool_)]
-
-
-def _read_saved(path: Path, device: torch.device, keys: tuple[str, ...]) -> dict:
-    """The dict ``torch.save`` wrote at ``path``, holding ``keys``; a ValueError naming the file otherwise. Read
-    with ``weights_only``: a model file from elsewhere (a colleague, a shared cluster folder) cannot run code when
-    loaded, as a full unpickling would let it."""
-    try:
-        with torch.serialization.safe_globals(_NUMPY_GLOBALS):
-            saved = torch.load(path, map_location=device, weights_only=True)
-    except _UNREADABLE as exc:
-        raise ValueError(f"{path}: damaged or not saved by this trainer ({type(exc).__name__})") from exc
-    missing = [k for k in keys if not isinstance(saved, dict) or k not in saved]
-    if missing:
-        raise ValueError(f"{path}: not saved by this trainer (no {', '.join(missing)})")
-    return saved
-
-
-def load_model(path: Path, device: torch.device) -> tuple[Field, np.ndarray, np.ndarray]:
-    """Load a field saved by :func:`save_model`: (field, scale_mat: field frame → SfM frame, frame: field frame →
-    normalized frame of cameras.npz). A ValueError naming the file when it is damaged or another version's."""
-    ck = _read_saved(path, device, ("field", "field_config", "scale_mat"))
-    try:
-        fc = dict(ck["field_config"])
-        fc["plane_res"] = tuple(fc["plane_res"])
-        fc["occ_plane_res"] = tuple(fc.get("occ_plane_res", ()))
-        model = make_field(FieldConfig(**fc)).to(device)
-        model.load_state_dict(ck["field"])
-        model.set_support(ck.get("support"))
-        scale_mat = np.asarray(ck["scale_mat"], dtype=np.float64).reshape(4, 4)
-        frame = np.asarray(ck.get("frame", np.eye(4)), dtype=np.float64).reshape(4, 4)
-    except _UNREADABLE as exc:  # a field of another version of this code (fields or weights renamed)
-        raise ValueError(f"{path}: a field this version cannot read ({type(exc).__name__})") from exc
-    model.eval()
-    return model, scale_mat, frame
-
-
 _CHECKPOINT_KEYS = ("step", "elapsed", "skipped", "field", "opt", "sched", "rng_torch", "rng_gen", "rng_np",
                     "rng_py")
 
@@ -462,7 +392,7 @@ class Trainer:
 
     def save_checkpoint(self) -> None:
         """Write everything an exact resume needs: step, weights, optimizer, schedule and every RNG state."""
-        _atomic_save({
+        atomic_save({
             "step": self.step, "elapsed": self.elapsed, "skipped": self.skipped,
             "field": self.model.state_dict(), "opt": self.opt.state_dict(), "sched": self.sched.state_dict(),
             "appearance": self.appearance.state_dict() if self.appearance is not None else None,
@@ -499,7 +429,7 @@ class Trainer:
         it, with the trainer untouched, when it is damaged or not a checkpoint."""
         if not self.ckpt_path.exists():
             return False
-        ck = _read_saved(self.ckpt_path, self.device, _CHECKPOINT_KEYS)  # before anything of it is loaded
+        ck = read_saved(self.ckpt_path, self.device, _CHECKPOINT_KEYS)  # before anything of it is loaded
         saved_res = self.model.grid_resolution_in(ck["field"])
         if saved_res is not None and saved_res != self.model.grid_resolution:
             self._resize_grid(saved_res)  # the checkpoint is past the upsampling
@@ -770,7 +700,7 @@ class Trainer:
         """The fitted per-view colour transforms, by image name: a gain per RGB channel."""
         gains = self.appearance.gains().cpu().numpy()
         rec = {name: {"gain": [round(float(x), 5) for x in g]} for name, g in zip(self.data.names, gains)}
-        _atomic_write_text(path, json.dumps(rec, indent=1))
+        atomic_write_text(path, json.dumps(rec, indent=1))
 
     def finish(self) -> Path:
         """Write ``final.pt`` (weights + field config + scale_mat) and a last preview."""
@@ -798,4 +728,4 @@ def train(cfg: TrainConfig, data: SceneData, out_dir: Path, stop_after: int | No
     return t
 
 
-__all__ = ["TrainConfig", "LossWeights", "Trainer", "train", "load_model", "save_model", "resolve_device"]
+__all__ = ["TrainConfig", "LossWeights", "Trainer", "train", "resolve_device"]

@@ -11,10 +11,10 @@ import torch
 import trimesh
 
 from dvr.cameras import transform_points
+from dvr.checkpoint import load_model
 from dvr.device import resolve_device
 from dvr.extract import extract_mesh
 from dvr.fields import evaluate_in_chunks
-from dvr.trainer import load_model
 
 from .board import mesh_units
 from .workspace import Done, Job, StageError
@@ -224,7 +224,7 @@ def load_mesh_file(path: Path, file_type: str, what: str, fix: str, **kwargs):
 
 
 def read_model(path, device: torch.device):
-    """The trained field of ``model/final.pt`` (:func:`dvr.trainer.load_model`: field, scale_mat, frame); a
+    """The trained field of ``model/final.pt`` (:func:`dvr.checkpoint.load_model`: field, scale_mat, frame); a
     StageError naming the file and the fix when it is damaged or another version's."""
     try:
         return load_model(path, device)

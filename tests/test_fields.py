@@ -7,10 +7,10 @@ import torch
 import trimesh
 from torch.autograd import gradcheck
 
+from dvr.checkpoint import load_model, save_model
 from dvr.extract import extract_mesh
 from dvr.fields import SUPPORT_SLOPE, Field, FieldConfig, GridField, evaluate_in_chunks, make_field
 from dvr.hull import grid_points
-from dvr.trainer import load_model, save_model
 
 
 def _ball_field(res=48, radius=0.5, centre=(0.0, 0.0, 0.0)):

@@ -109,7 +109,7 @@ def test_the_mesh_stage_drops_a_floater_from_the_points_in_the_sfm_frame(small_w
     import torch
 
     from dvr.cameras import load_cameras, transform_points
-    from dvr.trainer import load_model
+    from dvr.checkpoint import load_model
     from pipeline import mesh as mesh_stage
     from pipeline.cameras import write_points
     from pipeline.config import Config

@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from dvr import losses as L
+from dvr.checkpoint import load_model
 from dvr.data import RaySampler, load_scene
-from dvr.trainer import Trainer, load_model, train
+from dvr.trainer import Trainer, train
 from tests.test_hard_cases import tiny_cfg
 
 
