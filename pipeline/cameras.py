@@ -94,7 +94,9 @@ class CamerasConfig:
     """Run COLMAP (features, matching, mapping) on one thread: the same photos then give the same cameras, and the
     whole pipeline the same mesh. On all cores its runs differ (two runs of the cow's 40 photos: pose matrices
     1–3e-3 apart; over the bench's runs the floating cow scored 16.8–23 dB held-out, the jar 32.0–34.1); one
-    thread costs the cow's cameras stage 14 → 21 s (1600×1200: 120 → 176 s). Off: all cores."""
+    thread costs the cow's cameras stage 14 → 21 s (1600×1200: 120 → 176 s). Off: all cores. The object matches'
+    verification again (``object_verification`` "ransac") runs on all cores either way: its RANSAC is seeded per
+    pair, and the result is the same on any number of threads."""
     triangulate_given: bool = True
     """With given cameras (--cameras FILE): match SIFT features and triangulate them at the given poses, so the
     later stages get sparse depth, the support plane and SfM tracks as after our own SfM (about 10 s for 36 photos
@@ -466,7 +468,7 @@ def keep_object_matches(ws: Workspace, rec, database: Path, inp: Path, cfg: Came
         verify_at_poses(rec, database, db, threads)
     else:
         db, how = work / f"{database.stem}-h1.db", "keeping each pair's epipolar inliers"
-        verify_again(database, db, 1.0, cfg.seed, threads)
+        verify_again(database, db, 1.0, cfg.seed, -1)  # all cores even when deterministic: the same either way
     out, _ = retriangulate(rec, db, inp, work / "object", cfg.seed, threads)
     after = sphere_points(out, cfg)
     note = (f"{before} sparse points for the object's sphere (it needs {SPHERE_MIN_POINTS}); matches verified {how} "

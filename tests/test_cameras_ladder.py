@@ -29,7 +29,7 @@ def test_ladder_climbs_where_default_sift_falls_short(tmp_path, capfd):
     """The weakly textured jar on its blocky floor (configs/scenes/jar_floor.yaml) with 24 views of 320×240 30°
     apart: default SIFT registers about half the photos; the ladder climbs until every photo registers, with
     poses as accurate as the issue asks (camera centres within ~1 % of the orbit radius). COLMAP's info log (the
-    undistortion's line per photo) stays out of the terminal (``colmap_warnings_only``)."""
+    undistortion's line per photo) stays out of the terminal (:mod:`pipeline.colmaplib`)."""
     spec = yaml.safe_load((ROOT / "configs" / "scenes" / "jar_floor.yaml").read_text())
     spec["cameras"].update(n_views=24, rings=2, width=320, height=240, heldout=0)
     write_scene(scene_from_dict(spec, ROOT / "configs" / "scenes"), tmp_path / "syn")
@@ -88,6 +88,9 @@ def test_symmetric_object_stops_with_a_clear_error_never_wrong_poses(tmp_path, c
     inliers = [{pair: data for pair, rows, data, *_ in _verified_pairs(db) if rows} for db in (tmp_path / "verified.db",
                                                                                           verified)]
     assert len(inliers[1]) > 50 and inliers[0] == inliers[1]  # each pair's inlier matches, not only their number
+    # on every core the same: each pair's RANSAC is seeded alone (the stage verifies on all cores, deterministic or not)
+    verify_again(verified, tmp_path / "verified-all-cores.db", default.max_h_inlier_ratio, seed=0, threads=-1)
+    assert _verified_pairs(tmp_path / "verified-all-cores.db") == _verified_pairs(tmp_path / "verified.db")
 
 
 def test_merge_rung_registers_the_photos_a_partial_model_lacks(tmp_path):
