@@ -146,8 +146,6 @@ def stage_named(name: str) -> Stage:
 
 
 def _sources(stage: Stage, images=None, masks_dir=None, given_cameras=None) -> Sources:
-    if masks_dir is not None and images is not None and Path(images).is_dir():  # say a missing mask before SfM
-        masks.mask_files([p.stem for p in cameras.list_photos(Path(images))[0]], Path(masks_dir))
     given = {"images": images, "masks_dir": masks_dir, "given_cameras": given_cameras}
     unused = [k for k, v in given.items() if v is not None and k not in stage.sources]
     if unused:
