@@ -86,6 +86,21 @@ def find_captures(captures: Path, out: Path) -> list[Capture]:
     return found
 
 
+def user_masks_error(cap: Capture) -> str | None:
+    """The masks stage's one line when the capture's own ``masks/`` lacks a photo's mask (or holds two of one), said
+    before the capture's SfM runs, as ``reconstruct`` says it; None when its masks are complete or it has none."""
+    from .cameras import list_photos
+    from .masks import mask_files
+
+    if cap.masks_dir is None or not cap.photos.is_dir():
+        return None
+    try:
+        mask_files([p.stem for p in list_photos(cap.photos)[0]], cap.masks_dir)
+    except StageError as exc:
+        return str(exc)
+    return None
+
+
 def capture_done(cap: Capture, config) -> bool:
     """Whether every stage of ``cap`` is up to date (the report: written once)."""
     try:
@@ -273,6 +288,13 @@ def run_batch(captures: Path, out: Path, config=None, batch: BatchConfig | None 
     out.mkdir(parents=True, exist_ok=True)
     records: dict[str, list] = {c.name: [] for c in caps}
     todo = [c for c in caps if not capture_done(c, config)]
+    for c in list(todo):  # a capture whose masks lack a photo's fails before its SfM, the others go on
+        error = user_masks_error(c)
+        if error is not None:
+            records[c.name].append({"capture": c.name, "stage": "masks", "gpu": False, "status": "failed",
+                                    "ran": False, "seconds": 0.0, "error": error})
+            print(f"{c.name}: masks FAILED before its cameras ran: {error}", file=sys.stderr)
+            todo.remove(c)
     for c in caps:
         if c not in todo:
             print(f"{c.name}: up to date ({c.workspace / 'mesh' / 'textured.glb'})")

@@ -66,6 +66,8 @@ def test_batch_good_and_bad_capture_then_nothing_to_do(small_ws, tmp_path, capsy
 
     _local_ray_with_one_gpu(monkeypatch, cpus=2)  # none is here: the stage's device stays the CPU
     captures, out = _captures(small_ws, tmp_path), tmp_path / "out"
+    shutil.copytree(small_ws / "images", captures / "no_mask" / "images")  # its masks/ lacks one photo's
+    shutil.copytree(small_ws / "masks", captures / "no_mask" / "masks", ignore=shutil.ignore_patterns("000000.*"))
     cfg = config_from_args(None, TINY)
     rays_default = Path(tempfile.gettempdir()) / "ray"
     sessions_before = set(rays_default.iterdir()) if rays_default.exists() else set()
@@ -84,7 +86,9 @@ def test_batch_good_and_bad_capture_then_nothing_to_do(small_ws, tmp_path, capsy
     assert rows["too_few"]["status"] == "failed" and rows["too_few"]["failed_stage"] == "cameras"
     assert "at least 3 are needed" in rows["too_few"]["error"] and "\n" not in rows["too_few"]["error"]
     assert not (out / "too_few" / "mesh").exists()
-    assert json.loads((out / "summary.json").read_text())["failed"] == 1
+    assert rows["no_mask"]["status"] == "failed" and rows["no_mask"]["failed_stage"] == "masks"  # before its SfM
+    assert "no mask for 000000" in rows["no_mask"]["error"] and not (out / "no_mask" / "cameras.npz").exists()
+    assert json.loads((out / "summary.json").read_text())["failed"] == 2
     page = (out / "index.html").read_text()
     assert "good/report.html" in page and "good/mesh/textured.glb" in page and "at least 3 are needed" in page
     stamps = {p.name: p.stat().st_mtime_ns for p in (out / "good" / ".stages").glob("*.json")}
@@ -93,7 +97,7 @@ def test_batch_good_and_bad_capture_then_nothing_to_do(small_ws, tmp_path, capsy
     rc = main(["batch", str(captures), str(out), *TINY])
     captured = capsys.readouterr()
     assert rc == 2 and "good: up to date" in captured.out
-    assert len(captured.err.strip().splitlines()[-1:]) == 1 and "1 of 2 captures failed" in captured.err
+    assert len(captured.err.strip().splitlines()[-1:]) == 1 and "2 of 3 captures failed" in captured.err
     assert {p.name: p.stat().st_mtime_ns for p in (out / "good" / ".stages").glob("*.json")} == stamps
     again = {r["capture"]: r for r in json.loads((out / "summary.json").read_text())["rows"]}
     assert again["good"]["status"] == "up to date" and again["good"]["ran"] == []
