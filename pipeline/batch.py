@@ -26,7 +26,7 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
-from .stages import STAGES, is_up_to_date, run_stage, stage_named
+from .stages import STAGES, check_user_masks, is_up_to_date, run_stage, stage_named
 from .workspace import StageError
 
 
@@ -88,14 +88,12 @@ def find_captures(captures: Path, out: Path) -> list[Capture]:
 
 def user_masks_error(cap: Capture) -> str | None:
     """The masks stage's one line when the capture's own ``masks/`` lacks a photo's mask (or holds two of one), said
-    before the capture's SfM runs, as ``reconstruct`` says it; None when its masks are complete or it has none."""
-    from .cameras import list_photos
-    from .masks import mask_files
-
-    if cap.masks_dir is None or not cap.photos.is_dir():
+    before the capture's SfM runs, as ``reconstruct`` says it (:func:`pipeline.stages.check_user_masks`); None when
+    its masks are complete or it has none."""
+    if cap.masks_dir is None:
         return None
     try:
-        mask_files([p.stem for p in list_photos(cap.photos)[0]], cap.masks_dir)
+        check_user_masks(cap.photos, cap.masks_dir)
     except StageError as exc:
         return str(exc)
     return None

@@ -141,7 +141,7 @@ class MasksConfig:
 def mask_files(names: list[str], mask_dir: Path) -> dict[str, Path]:
     """The user's mask file of each photo stem in ``names`` (``mask_dir``, matched by stem, any image extension);
     StageError naming the folder and the fix when it is no folder, holds two masks of one photo or lacks one. Also
-    run by :func:`pipeline.stages.reconstruct` on the photo folder before SfM, so a missing mask is said at once."""
+    run on the photo folder before SfM (:func:`pipeline.stages.check_user_masks`), so a missing mask is said at once."""
     if not mask_dir.is_dir():
         raise StageError(f"{mask_dir}: not a folder; pass --masks-dir DIR with one mask per photo (same file name)")
     files = {}

@@ -228,6 +228,15 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
     return True
 
 
+def check_user_masks(images: str | Path, masks_dir: str | Path) -> None:
+    """The user's ``masks_dir`` holds a mask for every photo of the folder ``images``
+    (:func:`pipeline.masks.mask_files`), checked before SfM runs, so that a missing mask is said at once, not after
+    the cameras stage; StageError with the masks stage's own line otherwise. A video's frames are named only once
+    extracted: nothing to check then."""
+    if Path(images).is_dir():
+        masks.mask_files([p.stem for p in cameras.list_photos(Path(images))[0]], Path(masks_dir))
+
+
 def reconstruct(images: str | Path | None, workspace: str | Path, config: Config | None = None, *,
                 masks_dir: str | Path | None = None, given_cameras: str | Path | None = None,
                 force: bool = False) -> Path:
@@ -241,8 +250,8 @@ def reconstruct(images: str | Path | None, workspace: str | Path, config: Config
     ws = Workspace(workspace)
     if images is None and not ws.cameras.exists():
         raise StageError(f"{ws.root}: no photos given and no cameras.npz there; pass the photo folder (--images DIR)")
-    if masks_dir is not None and images is not None and Path(images).is_dir():  # say a missing mask before SfM
-        masks.mask_files([p.stem for p in cameras.list_photos(Path(images))[0]], Path(masks_dir))
+    if masks_dir is not None and images is not None:
+        check_user_masks(images, masks_dir)
     given = {"images": images, "masks_dir": masks_dir, "given_cameras": given_cameras}
     for stage in STAGES:
         # a stage of the photos runs when they are given or when any of its own sources is (user masks for a
