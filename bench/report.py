@@ -252,6 +252,11 @@ def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
               for what, scene, p in (("the cow", "cow", "default"), ("the cow", "cow", "balanced"),
                                      ("the jar", "jar", "default"), ("the book", "book", "default"),
                                      ("the floating cow", "cow_float", "default"), ("DTU scan24", "dtu", "default"))]
+    framing = "the framing rule (`train.framing` auto, stop 57: on where the object leaves most frames)"
+    pairs += [(framing, f"the cow photographed close up (cameras at 1.6 instead of 2.6 from it), {what}",
+               by.get(("default", "cow", c, "close-up photos, framing off")), by.get(("default", "cow", c,
+                                                                                      "close-up photos")))
+              for what, c in (("GT cameras and masks", "gt"), ("from photos", "sfm"))]
     out = []
     for name, what, off, on in pairs:
         if off is None or on is None:

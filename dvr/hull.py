@@ -45,6 +45,22 @@ def view_votes(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, sizes
     return ((vals < 0.5) & seen).sum(0), seen.sum(0)
 
 
+def cut_by_frame(masks: torch.Tensor, sizes: torch.Tensor | None = None, share: float = 0.01) -> torch.Tensor:
+    """(V,) bool: the views whose mask (V, H, W) reaches the image's edge along more than ``share`` of its border
+    pixels (the object leaves the frame there). ``sizes`` (V, 2) width, height of each view on a common canvas
+    (top-left aligned, as :func:`mask_lookup`'s); None: every view fills the canvas."""
+    if masks.ndim != 3:
+        raise ValueError(f"cut_by_frame: masks must be (V, H, W), got {tuple(masks.shape)}")
+    V, H, W = masks.shape
+    size = [(W, H)] * V if sizes is None else [(int(w), int(h)) for w, h in sizes.tolist()]
+    cut = []
+    for m, (w, h) in zip(masks, size):
+        obj = m[:h, :w] >= 0.5
+        border = torch.cat([obj[0], obj[-1], obj[1:-1, 0], obj[1:-1, -1]])
+        cut.append(border.float().mean() > share)
+    return torch.stack(cut) if cut else torch.zeros(0, dtype=torch.bool)
+
+
 def background_distance(masks: torch.Tensor) -> np.ndarray:
     """(V, H, W) float64: each pixel's distance in pixels to its mask's nearest object pixel (mask ≥ 0.5; 0 on the
     object, inf in a mask without object pixels)."""
@@ -66,8 +82,10 @@ def near_object(masks: torch.Tensor, px) -> torch.Tensor:
 
 def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min_views: int = 1,
                  chunk: int = 65536, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
-                 contact_band: float = 0.0, sparse_views: int = 0, near: torch.Tensor | None = None) -> torch.Tensor:
-    """True for points that ≥ ``min_views`` views see outside their mask, that no view sees, or that lie below the
+                 contact_band: float = 0.0, sparse_views: int = 0, near: torch.Tensor | None = None,
+                 min_framing: int = 1) -> torch.Tensor:
+    """True for points that ≥ ``min_views`` views see outside their mask, that fewer than ``min_framing`` views see
+    (project inside their image; 1: that no view sees), or that lie below the
     support plane ``ground`` (4,) when the object stands on one. Where fewer than ``sparse_views`` views see a point
     (the edge of the working sphere, which only a few photos frame), one view outside is enough: a vote of two
     needs enough voters (and no more than all the views that see it are ever asked). Within ``contact_band`` above
@@ -80,6 +98,8 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
     if P.ndim != 3 or P.shape[1:] != (3, 4) or masks.ndim != 3 or masks.shape[0] != P.shape[0]:
         raise ValueError(f"outside_hull: P must be (V, 3, 4) and masks (V, H, W), got {tuple(P.shape)} and "
                          f"{tuple(masks.shape)}")
+    if min_framing < 1:
+        raise ValueError(f"outside_hull: min_framing must be ≥ 1, got {min_framing}")
 
     def outside(p: torch.Tensor) -> torch.Tensor:
         """The test above for one chunk of points."""
@@ -93,7 +113,7 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
             hgt = plane_height(ground, p)
             if contact_band > 0:
                 need = torch.where(in_contact_band(hgt, contact_band), torch.clamp(need, min=2), need)
-        free = (n_out >= need) | (n_seen == 0)
+        free = (n_out >= need) | (n_seen < min_framing)
         if near is not None:
             free |= n_far > 0
         if ground is not None:

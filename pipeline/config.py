@@ -96,6 +96,7 @@ POSITIVE = frozenset({
     "masks.hull_res", "masks.stereo_scale", "masks.stereo_depths", "depth.min_track_length",
     "train.iterations", "train.batch_rays", "train.n_steps", "train.n_steps_final",
     "train.hull_res", "train.photo_hull_res", "train.frame_margin", "train.checkpoint_every", "train.log_every",
+    "train.min_framing_views",
     "train.field.base_res",
     "train.field.plane_features", "train.field.hidden", "train.field.mlp_layers",
     "mesh.resolution", "mesh.coarse_factor", "mesh.max_faces", "texture.size"})

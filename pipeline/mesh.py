@@ -61,7 +61,7 @@ class MeshConfig:
     unseen_rings: int = 2
     """With ``drop_unseen``: the seen faces are opened by this many rings of faces (eroded, then grown back within
     what is seen), so strips narrower than twice that, glimpsed at grazing angles beyond the outline, go with the
-    unseen side instead of hanging off the edge as shreds (DTU: 61 open loops 27.2 working-sphere radii long → 2, 11.1).
+    unseen side instead of hanging off the edge as shreds (DTU: 67 open loops 31.8 working-sphere radii long → 2, 12.3).
     0: every seen face stays."""
     frame: Literal["sfm", "normalized"] = "sfm"
     """Frame of the written meshes: 'sfm' (the frame of cameras.npz) or 'normalized' (unit sphere)."""

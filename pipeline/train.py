@@ -9,7 +9,7 @@ from dataclasses import asdict, replace
 
 from dvr.data import list_images, load_scene
 from dvr.device import resolve_device
-from dvr.trainer import TrainConfig, Trainer
+from dvr.trainer import TrainConfig, Trainer, framing_views
 
 from .exposure import read_exposure
 from .workspace import Done, Job, StageError, Workspace, newest_mtime
@@ -43,6 +43,7 @@ def run(job: Job) -> Done | None:
         raise StageError(str(exc)) from exc
     _fresh_or_resume(job)
     cfg, appearance = resolve_appearance(ws, cfg)
+    framing = report_framing(cfg, data)
     t0 = time.perf_counter()
     trainer = Trainer(cfg, data, ws.model)
     try:
@@ -59,8 +60,23 @@ def run(job: Job) -> Done | None:
     print(f"train: {trainer.step} steps in {trainer.elapsed:.1f} s (setup {trainer.setup_seconds:.1f} s) → "
           f"{ws.model / 'final.pt'}")
     return Done({"wall": round(time.perf_counter() - t0, 3), "setup": round(trainer.setup_seconds, 3),
-                 "skipped": trainer.skipped, "device": trainer.device.type, "appearance": appearance},
+                 "skipped": trainer.skipped, "device": trainer.device.type, "appearance": appearance,
+                 "framing": framing},
                 seconds=trainer.elapsed)
+
+
+def report_framing(cfg: TrainConfig, data) -> dict:
+    """Print and return how many photos must frame a point for training to let it be occupied
+    (:func:`dvr.trainer.framing_views`: ``framing`` auto decides by the photos whose mask reaches the frame's edge)."""
+    need, cut = framing_views(cfg, data)
+    views = data.P.shape[0]
+    state = "on" if need > 1 else "off"
+    why = (f"auto: the object reaches the frame's edge in {cut} of {views} photos, "
+           f"{'more than' if state == 'on' else 'at most'} {100 * cfg.framing_cut_share:.0f} %"
+           if cfg.framing == "auto" else f"--train.framing {cfg.framing}")
+    print(f"train: {need} photos must frame a point to be object ({why})" if state == "on" else
+          f"train: every framed point may be object ({why})")
+    return {"framing": state, "min_framing_views": need, "cut_views": cut, "auto": cfg.framing == "auto"}
 
 
 def resolve_appearance(ws: Workspace, cfg: TrainConfig) -> tuple[TrainConfig, dict]:

@@ -75,6 +75,41 @@ def test_one_view_carves_where_fewer_than_sparse_views_see_the_point():
                                                                                           min_views=2).sum()
 
 
+def test_a_point_too_few_views_frame_is_free_with_min_framing():
+    """``min_framing``: a point that one view frames, inside its mask (a close-up's corner of the working sphere),
+    stays by default and is free with ``min_framing`` 2; the point both views frame stays with 2 and goes with 3;
+    ``min_framing`` 0 is refused."""
+    P = torch.stack([ring_camera(0.0), ring_camera(np.pi / 2)])
+    masks = torch.ones(2, 100, 100)
+    both, only_0 = [0.0, 0.0, 0.0], [-1.0, 3.5, 0.0]
+    points = torch.tensor([both, only_0])
+    assert mask_lookup(points, P, masks)[1].sum(0).tolist() == [2, 1]
+    assert outside_hull(points, P, masks).tolist() == [False, False]
+    assert outside_hull(points, P, masks, min_framing=2).tolist() == [False, True]
+    assert outside_hull(points, P, masks, min_framing=3).tolist() == [True, True]
+    with pytest.raises(ValueError, match="min_framing"):
+        outside_hull(points, P, masks, min_framing=0)
+
+
+def test_cut_by_frame_finds_the_masks_that_reach_their_image_edge():
+    """A mask inside its frame, one reaching the right edge, one reaching only the canvas's padding beyond its own
+    smaller image (not cut), one touching the edge with a single pixel (under 1 % of the border: not cut)."""
+    from dvr.hull import cut_by_frame
+
+    masks = torch.zeros(4, 60, 80)
+    masks[:, 20:40, 30:50] = 1.0
+    masks[1:3, 20:40, 50:] = 1.0
+    masks[3, 0, 40] = 1.0  # 1 of the border's 276 pixels
+    sizes = torch.tensor([[80, 60], [80, 60], [60, 60], [80, 60]])
+    assert cut_by_frame(masks, sizes).tolist() == [False, True, True, False]  # view 2: its own edge at 60
+    sizes[2, 0] = 80
+    masks[2, :, 60:] = 0.0
+    assert cut_by_frame(masks, sizes).tolist() == [False, True, False, False]
+    assert cut_by_frame(masks).tolist() == [False, True, False, False]
+    with pytest.raises(ValueError, match="cut_by_frame"):
+        cut_by_frame(masks[0])
+
+
 def test_near_object_marks_the_pixels_within_px_of_an_object_pixel():
     """1 on the object and less than ``px`` from it (one distance, or one per view), 0 beyond; a mask without object
     is all 0; bad input: one-line ValueError."""

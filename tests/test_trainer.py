@@ -3,12 +3,14 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from dvr import losses as L
 from dvr.checkpoint import load_model
 from dvr.data import RaySampler, load_scene
+from dvr.hull import grid_points
 from dvr.trainer import Trainer, train
 from tests.test_hard_cases import tiny_cfg
 
@@ -307,6 +309,34 @@ def test_sparse_views_let_one_mask_carve_in_the_hull_and_the_carving_term(small_
     assert Trainer(sparse, data, tmp_path / "one").carved(centre).tolist() == [True]
 
 
+def test_framing_empties_what_too_few_photos_frame_in_the_hull_and_the_carving_term(small_ws, tmp_path):
+    """``framing``: with every mask all object (each reaching its frame's edge), "off" keeps the sphere's points that
+    only a few of the 8 views frame; "on" with all 8 asked for keeps fewer, the centre among them, and carves the
+    others in the carving term too; asking for more than there are asks for all 8. "auto" is "on" here (every
+    mask reaches the edge) and "off" with the scene's own masks (the torus inside every frame)."""
+    from dvr.trainer import framing_views, initial_inside
+
+    data = load_scene(small_ws, torch.device("cpu"))
+    assert framing_views(tiny_cfg(), data) == (1, 0)  # the scene's masks: auto is off
+    data.masks[:] = 1.0
+    centre = torch.zeros(1, 3)
+    cfg = dict(photo_hull=False, carve_sure_depth=0.0)
+    off = tiny_cfg(framing="off", **cfg)
+    kept = initial_inside(off, data)[0]
+    all_8 = tiny_cfg(framing="on", min_framing_views=8, **cfg)
+    framed_by_all = initial_inside(all_8, data)[0]
+    assert 0 < framed_by_all.sum() < kept.sum()
+    assert np.array_equal(initial_inside(tiny_cfg(framing="on", min_framing_views=9, **cfg), data)[0], framed_by_all)
+    assert framing_views(tiny_cfg(**cfg), data) == (5, 8)  # auto, every mask cut by its frame
+    assert np.array_equal(initial_inside(tiny_cfg(**cfg), data)[0],
+                          initial_inside(tiny_cfg(framing="on", min_framing_views=5, **cfg), data)[0])
+    few = torch.from_numpy(np.flatnonzero((kept & ~framed_by_all).ravel())[:50])
+    points = grid_points(off.hull_res)[few]  # in the hull with the rule off, framed by fewer than all 8
+    assert Trainer(all_8, data, tmp_path / "eight").carved(torch.cat([centre, points])).tolist() == \
+        [False] + [True] * len(few)
+    assert not Trainer(off, data, tmp_path / "off").carved(points).any()
+
+
 def test_sure_background_lets_one_mask_carve_in_the_hull_and_the_carving_term(small_ws, tmp_path):
     """``carve_sure_depth`` (a fraction of the image's diagonal; off by default): one view's mask carves a point it
     puts farther than that into its background, in the initial hull and in the carving term alike. View 0's object
@@ -349,3 +379,19 @@ def test_sparse_views_reach_the_training_frame(small_ws):
     framed = training_frame(tiny_cfg(carve_sure_depth=0.0, carve_sparse_views=data.P.shape[0] + 1), data)
     radius = framed.cams.scale_mat[0, 0] / data.cams.scale_mat[0, 0]
     assert framed is not data and radius < 0.8
+
+
+def test_the_train_stage_says_and_records_its_framing_choice(small_ws, capsys):
+    """pipeline.train.report_framing: off on the scene's own masks (the torus inside every frame), on with 5 views
+    when every mask reaches its frame's edge, as the stamp records it."""
+    from pipeline.train import report_framing
+
+    data = load_scene(small_ws, torch.device("cpu"))
+    cfg = tiny_cfg()
+    assert report_framing(cfg, data) == {"framing": "off", "min_framing_views": 1, "cut_views": 0, "auto": True}
+    assert "every framed point may be object (auto: the object reaches the frame's edge in 0 of 8" in \
+        capsys.readouterr().out
+    data.masks[:] = 1.0
+    assert report_framing(cfg, data) == {"framing": "on", "min_framing_views": 5, "cut_views": 8, "auto": True}
+    assert "5 photos must frame a point to be object (auto: the object reaches the frame's edge in 8 of 8 photos, " \
+        "more than 50 %)" in capsys.readouterr().out
