@@ -50,7 +50,7 @@ board: setup
 # synthetic scene: make synth SCENE=configs/scenes/torus.yaml OUT=work/torus
 SCENE ?= configs/scenes/torus.yaml
 synth: setup
-	$(PY) -m pipeline synth "$(SCENE)" "$(OUT)"
+	$(PY) -m synth "$(SCENE)" "$(OUT)"
 
 # one target per stage of the stage table (pipeline/stages.py): make <stage> WS=workspace [CONFIG=…] [FORCE=1] [ARGS=…]
 STAGES := $(shell sed -n 's/^    Stage."\([a-z_]*\)".*/\1/p' pipeline/stages.py)

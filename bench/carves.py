@@ -74,8 +74,9 @@ def carve(name: str, over: dict, from_photos: bool = False, gt_masks: bool = Fal
     """The photo hull's counts on one capture as the train stage would carve it (its frame, its lattices), and
     the seconds the initial occupancy took with the photo hull and without; ``gt_masks`` (from photos): with the
     GT masks in place of the automatic ones."""
+    from dvr.config import TrainConfig
     from dvr.data import load_scene
-    from dvr.trainer import TrainConfig, initial_inside, training_frame
+    from dvr.trainer import initial_inside, training_frame
 
     ws, views = workspace(name, over, from_photos)
     if gt_masks:

@@ -22,13 +22,14 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from dvr.config import FieldConfig, TrainConfig  # noqa: E402
 from dvr.data import load_scene  # noqa: E402
 from dvr.device import resolve_device  # noqa: E402
 from dvr.extract import extract_mesh  # noqa: E402
-from dvr.fields import FieldConfig, GridField  # noqa: E402
+from dvr.fields import GridField  # noqa: E402
 from dvr.metrics import chamfer_fscore  # noqa: E402
-from dvr.trainer import TrainConfig, Trainer  # noqa: E402
-from pipeline.synth import load_scene_file, write_scene  # noqa: E402
+from dvr.trainer import Trainer  # noqa: E402
+from synth import load_scene_file, write_scene  # noqa: E402
 
 
 def cpu_info() -> dict:

@@ -58,7 +58,7 @@ def main() -> None:
     from dvr.cameras import load_cameras
     from dvr.data import list_images
     from dvr.metrics import masked_psnr
-    from pipeline.texture import render_textured
+    from pipeline.render.textured import render_textured
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--blur", type=float, default=1.5)

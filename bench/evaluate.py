@@ -48,7 +48,7 @@ def scene(name: str, over: dict) -> Path:
     """Render (once, cached in bench/runs/scenes) the synthetic scene with overrides; returns its folder."""
     import yaml
 
-    from pipeline.synth import scene_from_dict, write_scene
+    from synth import scene_from_dict, write_scene
 
     tag = name + ("-" + "-".join(f"{k}{sorted(v.items()) if isinstance(v, dict) else v}" for k, v in over.items())
                   if over else "")
@@ -93,7 +93,7 @@ def stages(names: tuple[str, ...], ws: Path, cfg, **sources) -> None:
 
 def textured(ws: Path):
     """The textured GLB of a workspace: trimesh mesh and its texture (float RGB)."""
-    from pipeline.texture import read_textured
+    from pipeline.texture.export import read_textured
 
     return read_textured(ws / "mesh" / "textured.glb")
 
@@ -109,7 +109,7 @@ def photos_folder(syn: Path, out: Path, jpeg_quality: int | None = None) -> Path
     quality (4:2:0 chroma, as cameras and phones save them)."""
     import cv2
 
-    from pipeline.synth.phone import save_jpeg
+    from synth.phone import save_jpeg
 
     out.mkdir(parents=True)
     photos = [(p, p.stem) for p in sorted((syn / "images").glob("*.png"))]
@@ -142,7 +142,7 @@ def view_mask_iou(mask: Path, gt: Path) -> float:
 
 def _render_at(tm, tex, K, R, centre, photo: np.ndarray):
     """The textured mesh rendered at a camera, at the photo's size: (image, hit mask)."""
-    from pipeline.texture import render_textured
+    from pipeline.render.textured import render_textured
 
     h, w = photo.shape[:2]
     return render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, K, R, centre, w, h)
@@ -165,7 +165,7 @@ def reaimed_psnrs(tm, tex, views: list[tuple]) -> dict:
     """The held-out figure with each view re-aimed (:mod:`bench.reaim`): mean PSNR and mean degrees turned over
     ``views`` = (K, R, centre, photo path, mask path)."""
     from bench.reaim import reaimed_psnr
-    from pipeline.texture import TexturedCaster
+    from pipeline.render.textured import TexturedCaster
 
     caster = TexturedCaster(tm.vertices, tm.faces, tm.visual.uv, tex)
     out = [reaimed_psnr(caster, K, R, c, _read_rgb(p), _read_mask(m)) for K, R, c, p, m in views]
@@ -189,7 +189,7 @@ def image_psnr(img: np.ndarray, hit: np.ndarray, photo: np.ndarray, mask: np.nda
 def photo_gains(img: np.ndarray, photo: np.ndarray, where: np.ndarray) -> np.ndarray:
     """(3,) the least-squares gains per colour channel from a render ``img`` to a photo over the pixels ``where``
     the photo is not over-exposed (a clipped channel only says "at least this bright"); ones where none is left."""
-    from pipeline.texture import TextureConfig
+    from pipeline.texture.config import TextureConfig
 
     fit = where & (photo < TextureConfig.clipped_level).all(-1)
     if not fit.any():
@@ -354,8 +354,8 @@ def run_cameras(spec: dict, work: Path, conditions: dict) -> dict:
     syn = scene(name, over)
     photos = prepare(syn, work / "photos") if prepare else syn / "images"
     ws = work / "ws"
+    from pipeline.errors import StageError
     from pipeline.stages import run_stage
-    from pipeline.workspace import StageError
 
     try:
         run_stage("cameras", ws, images=photos)
@@ -374,7 +374,7 @@ def run_cameras(spec: dict, work: Path, conditions: dict) -> dict:
     stems = [p.stem for p in list_images(ws / "images")]
     flags_file = photos.parent / "phone_flags.json"  # a phone folder: file names and EXIF rolls of the views
     if flags_file.exists():
-        from pipeline.synth.phone import upright_roll
+        from synth.phone import upright_roll
 
         rec = json.loads(flags_file.read_text())
         idx = [int(rec[s]["source"]) for s in stems]
@@ -437,7 +437,7 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     tm, tex = textured(ws)
     from bench.reaim import reaimed_psnr
     from dvr.metrics import masked_psnr
-    from pipeline.texture import TexturedCaster, render_textured
+    from pipeline.render.textured import TexturedCaster, render_textured
 
     caster = TexturedCaster(tm.vertices, tm.faces, tm.visual.uv, tex)
     psnr, psnr_hit, cover, psnr_train, fitted, fitted_train, reaimed = [], [], [], [], [], [], []

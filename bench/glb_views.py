@@ -15,7 +15,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.report import VIEWER_JS, inlined_viewer  # noqa: E402
+from pipeline.report.stage import VIEWER_JS, inlined_viewer  # noqa: E402
 
 ORBITS = ("0deg 75deg auto", "90deg 75deg auto", "180deg 75deg auto", "270deg 75deg auto", "0deg 5deg auto")
 SIDE = 300

@@ -15,8 +15,8 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name())"
 mkdir -p logs
 # the core ops on CUDA against CPU, the field interface on both, the surface finding's CUDA graphs
-timeout 60 python3 -m pytest -q -p no:cacheprovider tests/test_device.py tests/test_fields.py tests/test_march.py \
-  tests/test_surface_graph.py > logs/tests.log 2>&1
+timeout 60 python3 -m pytest -q -p no:cacheprovider tests/dvr/test_device.py tests/dvr/test_fields.py tests/dvr/test_march.py \
+  tests/dvr/test_surface_graph.py > logs/tests.log 2>&1
 tail -3 logs/tests.log
 # a step's surface finding eagerly, with fixed shapes, and as trained (one CUDA graph)
 timeout 45 python3 bench/gpu.py graph gpuw > logs/graph.log 2>&1; tail -4 logs/graph.log

@@ -34,15 +34,15 @@ OVER = {"cameras": {"n_views": 96, "orbit_turns": 1.0, "rings": 0, "heldout": 4}
 TAKEN = list(range(0, 96, 2))
 ARMS = ("png", "jpeg", "decoded", "decoded_still", "jpeg_x2", "jpeg_3x", "decoded_3x")
 SHAKE_PX = 9
-"""``pipeline.synth.video.write_video``'s shake at the working size."""
+"""``synth.video.write_video``'s shake at the working size."""
 
 
 def arm_photos(syn: Path, arm: str, out: Path, quality: int) -> Path:
     """The taken frames as the arm writes them into ``out`` (``syn``: the scene at the arm's size)."""
     import cv2
 
-    from pipeline.synth.phone import save_jpeg
-    from pipeline.synth.video import write_video
+    from synth.phone import save_jpeg
+    from synth.video import write_video
 
     out.mkdir(parents=True)
     frames = None

@@ -20,9 +20,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.far_surface import view_background_depths  # noqa: E402
+from dvr.config import TrainConfig  # noqa: E402
 from dvr.data import list_images, load_scene  # noqa: E402
 from dvr.hull import grid_points, hull_inside  # noqa: E402
-from dvr.trainer import TrainConfig, carve_rules, training_frame  # noqa: E402
+from dvr.trainer import carve_rules, training_frame  # noqa: E402
 
 
 def hull_depths(ws: Path, res: int) -> list[np.ndarray]:

@@ -1,5 +1,5 @@
 """How far SfM's cameras put the object from where the true cameras see it, in pixels, with and without the final
-adjustment's passes (``pipeline/sfm.py refine_model``).
+adjustment's passes (``pipeline/cameras/sfm.py refine_model``).
 
     python bench/object_px.py bench/runs/scenes/jar WS [--passes 3] [--ratio 2.5]
 
@@ -57,8 +57,8 @@ def main() -> None:
     import trimesh
 
     from dvr.cameras import load_cameras, project_points
+    from pipeline.cameras.sfm import refine_model
     from pipeline.colmaplib import pycolmap
-    from pipeline.sfm import refine_model
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scene", type=Path, help="the rendered scene (cameras.npz, gt/mesh.ply, gt/heldout/cameras.npz)")

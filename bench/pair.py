@@ -10,7 +10,7 @@ stage with the defaults, and the model as mapped (no final adjustment, no object
 as the bench's conditions do, and names the pair's folder after the rendered scene; its ``photos_jpeg`` saves the
 photos as JPEGs, for the mapping and the arms alike). Each arm (options in the CLI's spelling; "" for the
 defaults) then runs the rest of the pipeline from that mapping and the ladder's rung that gave it — the cameras
-stage's final adjustment and object matches (:func:`pipeline.cameras.finish_model`), masks, depth, training,
+stage's final adjustment and object matches (:func:`pipeline.cameras.mapping.finish_model`), masks, depth, training,
 mesh, texture — and is measured like a bench row (:func:`bench.evaluate.run_synthetic`). Prints one line per arm
 and writes ``bench/runs/pairs/<scene>/<preset>.jsonl``. The phone-size cow, verifying its object's matches at the
 model's known poses against RANSAC (the default):
@@ -46,7 +46,7 @@ def pair_folder(scene: str, over: dict) -> Path:
 def map_once(scene: str, over: dict, remap: bool = False) -> Path:
     """The workspace of the scene's photos (JPEGs where ``over`` says ``photos_jpeg``, as the arms get them) after
     the cameras stage with the defaults but no final passes and no object matches: the model as mapped, whose final
-    adjustment and object matches (:func:`pipeline.cameras.keep_object_matches`, photos larger than the working
+    adjustment and object matches (:func:`pipeline.cameras.mapping.keep_object_matches`, photos larger than the working
     size) each arm runs with its own options. Mapped on the first call, with ``remap``, or when the saved mapping
     already holds the object's matches (mapped before they became the arms')."""
     out = pair_folder(scene, over)
@@ -66,7 +66,7 @@ def mapped_rung(mapping: Path) -> str:
 
 
 def from_mapping(mapping: Path):
-    """A stand-in for :func:`pipeline.cameras.map_photos` that returns the saved mapping of ``mapping`` (its SfM
+    """A stand-in for :func:`pipeline.cameras.mapping.map_photos` that returns the saved mapping of ``mapping`` (its SfM
     input folder copied into the new workspace, so that paths inside it stay valid) and the ladder's rung that
     mapped it (which decides the final adjustment's passes)."""
     from pipeline.colmaplib import pycolmap
@@ -84,9 +84,9 @@ def from_mapping(mapping: Path):
 
 def run_arm(scene: str, over: dict, mapping: Path, preset: str, options: list[str], work: Path) -> dict:
     """One arm: the rest of the pipeline from ``mapping`` with ``options``, measured."""
-    import pipeline.cameras as cameras_stage
+    import pipeline.cameras.mapping as sfm_mapping
 
-    cameras_stage.map_photos = from_mapping(mapping)
+    sfm_mapping.map_photos = from_mapping(mapping)
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     spec = {"scene": scene, "cameras": "sfm", "preset": preset, "knob": "arm"}

@@ -87,7 +87,7 @@ def picture(ws: Path, views: list[int], out: Path) -> None:
     """Photo | textured mesh at the training views ``views`` of ``ws``, in one row."""
     import cv2
 
-    from pipeline.texture import render_textured
+    from pipeline.render.textured import render_textured
 
     tm, tex = ev.textured(ws)
     cams, paths = load_cameras(ws / "cameras.npz"), list_images(ws / "images")

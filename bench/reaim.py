@@ -88,7 +88,7 @@ def degrees_turned(Rd: np.ndarray) -> float:
 def reaim(caster, K: np.ndarray, R: np.ndarray, centre: np.ndarray, photo: np.ndarray, mask: np.ndarray,
           steps_px: tuple[float, ...] = (0.5, 0.25, 0.12, 0.06)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(Rd, image, hit): the turn about the camera's centre whose fresh render of ``caster``
-    (:class:`pipeline.texture.TexturedCaster`) has the least squared error against ``photo`` over ``mask`` ∪ its
+    (:class:`pipeline.render.textured.TexturedCaster`) has the least squared error against ``photo`` over ``mask`` ∪ its
     pixels — the figure the PSNR takes — and that render. Starts from the better of no turn and
     :func:`fit_rotation`'s (a fit on warped renders, which bilinear resampling blurs, so not trusted for the last
     fraction of a pixel), then a compass search on fresh renders, one axis at a time, in ``steps_px`` (pixels at the
@@ -149,7 +149,7 @@ def picture(arm: Path, scene: str, view: int, out: Path) -> None:
     from bench import evaluate as ev
     from dvr.cameras import load_cameras
     from dvr.data import list_images
-    from pipeline.texture import TexturedCaster
+    from pipeline.render.textured import TexturedCaster
 
     syn = ev.scene(scene, {})
     tm, tex = ev.textured(arm / "ws")

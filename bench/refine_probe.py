@@ -27,8 +27,10 @@ sys.path.insert(0, str(ROOT))
 from bench import evaluate as ev  # noqa: E402
 from dvr.cameras import load_cameras, to_normalized, to_sfm  # noqa: E402
 from dvr.data import list_images  # noqa: E402
-from pipeline.raycast import mesh_intersector, pixel_center_rays  # noqa: E402
-from pipeline.texture import TextureConfig, depth_maps, photos_for_bake  # noqa: E402
+from pipeline.render.raycast import mesh_intersector, pixel_center_rays  # noqa: E402
+from pipeline.texture.appearance import photos_for_bake  # noqa: E402
+from pipeline.texture.config import TextureConfig  # noqa: E402
+from pipeline.texture.stage import depth_maps  # noqa: E402
 
 
 def neighbours(cams, k):
@@ -199,7 +201,7 @@ def main():
 
 def metrics(full, ws):
     """Mean PSNR of the workspace's textured mesh at DTU's held-out and training views (bench/evaluate.py run_dtu)."""
-    from pipeline.texture import render_textured
+    from pipeline.render.textured import render_textured
 
     tm, tex = ev.textured(ws)
     paths_all = list_images(full / "images")

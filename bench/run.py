@@ -100,7 +100,7 @@ ABLATIONS = {
 def phone_folder(syn: Path, out: Path) -> Path:
     """The scene's photos as a phone writes them: JPEG with EXIF orientation 1, 6, 3, 8 in turn (the pixels stored
     rotated accordingly), every fourth photo at twice the size, one file name with spaces."""
-    from pipeline.synth.phone import write_phone_folder
+    from synth.phone import write_phone_folder
 
     return write_phone_folder(syn / "images", out.parent / "my phone photos")
 

@@ -19,9 +19,10 @@ sys.path.insert(0, str(ROOT))
 
 from bench import evaluate as ev  # noqa: E402
 from dvr.cameras import plane_height  # noqa: E402
+from dvr.config import TrainConfig  # noqa: E402
 from dvr.data import load_scene  # noqa: E402
 from dvr.hull import grid_points, view_votes  # noqa: E402
-from dvr.trainer import TrainConfig, training_frame  # noqa: E402
+from dvr.trainer import training_frame  # noqa: E402
 
 GT_SCENES = ("cow", "jar", "book", "cow_float", "stool", "mug")
 

@@ -4,9 +4,9 @@
 
 The bench's cow (configs/scenes/cow_floor.yaml) rendered along one continuous path (``M`` frames, ``T`` turns
 while the camera rises from 15° to 55°, 4 held-out views halfway between frames), written as an MP4 with every
-third frame shaken (pipeline/synth/video.py; ``--codec h264`` or ``hevc`` as phones record, ``--portrait``
+third frame shaken (synth/video.py; ``--codec h264`` or ``hevc`` as phones record, ``--portrait``
 filmed with the phone held upright: frames of 300×400 stored turned, the clip tagged 90°), then ``cameras``
-(taking ``N`` frames: pipeline/video.py), masks, depth, train, mesh and texture from the clip alone. Printed:
+(taking ``N`` frames: pipeline/inputs/video.py), masks, depth, train, mesh and texture from the clip alone. Printed:
 frames registered, their pose error against the true cameras of the frames chosen, mask IoU against the frames'
 true masks, Chamfer and F-score against the true mesh, held-out PSNR at the held-out views' true poses brought
 into SfM's frame (the bench's ``psnr_gt_pose``), and the seconds of each stage.
@@ -33,15 +33,15 @@ def main() -> None:
 
     from dvr.cameras import load_cameras
     from dvr.metrics import chamfer_fscore, pose_errors, umeyama
-    from pipeline.synth.video import write_video
     from pipeline.workspace import Workspace
+    from synth.video import write_video
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=48, help="frames the cameras stage takes (cameras.video_frames)")
     ap.add_argument("--clip-frames", type=int, default=96, help="frames of the rendered clip")
     ap.add_argument("--turns", type=float, default=1.0, help="turns around the cow")
     ap.add_argument("--preset", default="default")
-    ap.add_argument("--codec", default="mp4v", help="mp4v, MJPG, h264 or hevc (pipeline/synth/video.py)")
+    ap.add_argument("--codec", default="mp4v", help="mp4v, MJPG, h264 or hevc (synth/video.py)")
     ap.add_argument("--portrait", action="store_true", help="the phone held upright: 300×400 frames, tagged 90°")
     a = ap.parse_args()
     over = {"cameras": {"n_views": a.clip_frames, "orbit_turns": a.turns, "rings": 0, "heldout": 4,

@@ -8,7 +8,7 @@ averages that into mud while the geometry bends to explain it. Each view v gets 
 applied to the shared texture field's colour before the RGB loss, starting at identity (g = 0) and regularised
 towards it. No offset: exposure and white balance are gains, and a gain and an offset per view trade against each
 other on the few colours one object shows (with both, the fitted gains came out 8 % off the true ones on a
-mid-grey scene; gain only: 1.4 %, `tests/test_appearance.py`). A gain in linear light is also a gain after the
+mid-grey scene; gain only: 1.4 %, `tests/dvr/test_appearance.py`). A gain in linear light is also a gain after the
 camera's gamma curve ((g·x)^γ = g^γ·x^γ), so the model fits sRGB photos as well as the renderer's linear ones.
 The field should keep the colour of the average view (what the held-out views see), but the regulariser fixes
 the common scale only softly: where the field cannot reach the brightest colours, every view's gain drifts the same

@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .fields import Field, FieldConfig, make_field
+from dvr.config import FieldConfig
+from dvr.fields import Field, make_field
 
 
 def atomic_write_text(path: Path, text: str) -> None:

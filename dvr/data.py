@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import convert_points_to_homogeneous
 
-from .cameras import Cameras, load_cameras, sphere_frame
+from dvr.cameras import Cameras, load_cameras, sphere_frame
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 

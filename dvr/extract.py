@@ -13,10 +13,10 @@ import torch
 import torch.nn.functional as F
 from skimage import measure
 
-from .cameras import in_contact_band
-from .fields import Field, evaluate_in_chunks
-from .hull import grid_points
-from .march import LogitFn
+from dvr.cameras import in_contact_band
+from dvr.fields import Field, evaluate_in_chunks
+from dvr.hull import grid_points
+from dvr.march import LogitFn
 
 
 def _logits_float32(logit_fn: LogitFn, pts: torch.Tensor, chunk: int) -> torch.Tensor:

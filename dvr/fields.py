@@ -19,37 +19,13 @@ implement the :class:`Field` interface that the trainer, the renderer and the ex
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass
-from typing import Callable, Literal
+from typing import Callable
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-
-@dataclass
-class FieldConfig:
-    """Representation of the occupancy and texture fields."""
-
-    kind: Literal["grid", "mlp"] = "grid"
-    """'grid': dense logit grid + tri-plane features + small MLPs (fast); 'mlp': plain MLP reference."""
-    base_res: int = 96
-    """Resolution of the dense occupancy logit grid (cells per axis over [-1, 1])."""
-    plane_res: tuple[int, ...] = (64, 128, 256)
-    """Resolutions of the texture field's tri-plane levels (one set of three planes per level)."""
-    occ_plane_res: tuple[int, ...] = ()
-    """Resolutions of an optional tri-plane residual of the occupancy (empty: the dense grid alone)."""
-    plane_features: int = 4
-    """Feature channels per plane and level."""
-    hidden: int = 32
-    """Width of the small MLP heads (grid) or of every layer (mlp)."""
-    mlp_layers: int = 4
-    """Hidden layers of the reference MLP."""
-    mlp_frequencies: int = 6
-    """Fourier frequencies of the reference MLP's xyz encoding."""
-    logit_clamp: float = 10.0
-    """|logit| bound of the initial dense grid (hull prior)."""
-
+from dvr.config import FieldConfig  # moved
 
 SUPPORT_SLOPE = 500.0
 """Logit per unit of depth below the support plane: one grid cell (2/96) below it the logit is −10."""

@@ -12,8 +12,8 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from .cameras import in_contact_band, plane_height, project
-from .fields import evaluate_in_chunks
+from dvr.cameras import in_contact_band, plane_height, project
+from dvr.fields import evaluate_in_chunks
 
 
 def mask_lookup(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, sizes: torch.Tensor | None = None):
@@ -196,7 +196,7 @@ def carve_along_rays(logits: torch.Tensor, origins: torch.Tensor, dirs: torch.Te
     """Set to −``value`` (free) the lattice points of a (R+1)³ logit volume [x, y, z] over [-1, 1]³ nearest to
     the rays' segments from the unit-sphere entry to ``depth`` minus half a cell diagonal (so no carved lattice
     point lies behind ``depth``). Rays of non-positive length change nothing."""
-    from .cameras import sphere_bounds
+    from dvr.cameras import sphere_bounds
 
     out = logits.clone()
     R = logits.shape[0] - 1

@@ -19,7 +19,7 @@ from typing import Callable
 
 import torch
 
-from .cameras import sphere_bounds
+from dvr.cameras import sphere_bounds
 
 MISS, HIT, INSIDE = 0, 1, 2
 

@@ -25,8 +25,8 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from .cameras import project
-from .hull import grid_points
+from dvr.cameras import project
+from dvr.hull import grid_points
 
 NORMAL_SHIFTS = (-0.5, 0.5, 1.5, 2.5, 3.5)
 """Where else along the outward normal (in cells) a surface point's colours are read; its spread is the least.

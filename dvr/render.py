@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from .data import SceneData
-from .fields import Field
-from .march import find_surface
+from dvr.data import SceneData
+from dvr.fields import Field
+from dvr.march import find_surface
 
 
 @torch.no_grad()

@@ -20,8 +20,8 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from .fields import fourier_encode
-from .losses import safe_mean
+from dvr.fields import fourier_encode
+from dvr.losses import safe_mean
 
 
 def sh_degree2(dirs: torch.Tensor) -> torch.Tensor:

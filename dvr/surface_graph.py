@@ -20,7 +20,7 @@ from typing import Callable
 
 import torch
 
-from .march import LogitFn, SurfaceResult, find_surface, find_surface_fixed, sample_fractions
+from dvr.march import LogitFn, SurfaceResult, find_surface, find_surface_fixed, sample_fractions
 
 log = logging.getLogger(__name__)
 

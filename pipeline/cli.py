@@ -5,6 +5,7 @@ The stage commands come from the stage table (:data:`pipeline.stages.STAGES`): e
 tyro from its config dataclass (the ``--help`` text is the fields' docstrings), one namespace per stage
 (``--masks.hull-res``, ``--cameras.max-features``); the user's paths are ``--images``, ``--masks-dir`` and
 ``--given-cameras``. ``--config`` loads a YAML preset first; options given on the command line override it.
+``--help`` lists the options a user needs (:mod:`pipeline.cli_help`), ``--help-all`` every option.
 The parsing is a thin layer over :func:`pipeline.stages.run_stage` and :func:`pipeline.stages.reconstruct`.
 """
 
@@ -20,19 +21,11 @@ from typing import Annotated, Optional
 
 import tyro
 
-from .config import Config, load_config
-from .stages import STAGES, Stage, reconstruct, run_stage
-from .workspace import Sources, StageError
-
-
-@dataclass
-class SynthArgs:
-    """Render a synthetic scene (YAML) into a workspace with ground truth in gt/."""
-
-    scene: tyro.conf.Positional[Path]
-    """Scene file (see configs/scenes/)."""
-    out: tyro.conf.Positional[Path]
-    """Output workspace folder."""
+from pipeline.cli_help import field_doc, short_help
+from pipeline.config import Config, load_config
+from pipeline.errors import StageError
+from pipeline.stages import STAGES, Stage, reconstruct, run_stage
+from pipeline.workspace import Sources
 
 
 @dataclass
@@ -54,20 +47,6 @@ class BoardArgs:
     """Dots per inch of the page (recorded in the PNG)."""
 
 
-def _doc(cls, name: str) -> str:
-    """The docstring of field ``name`` of dataclass ``cls`` (the string literal under it), for generated fields."""
-    import ast
-    import inspect
-    import textwrap
-
-    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
-    for node, after in zip(body, body[1:]):
-        if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", None) == name and \
-                isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant):
-            return " ".join(after.value.value.split())
-    return ""
-
-
 def _arguments(sections: list[str], sources: tuple[str, ...]) -> list[tuple]:
     """The fields of a generated command: workspace, preset, force, the user's paths, then the config sections."""
     def _arg(tp, help_text):
@@ -80,7 +59,8 @@ def _arguments(sections: list[str], sources: tuple[str, ...]) -> list[tuple]:
                dataclasses.field(default=None)),
               ("force", _arg(bool, "Redo the stage(s) even when up to date (train also discards its checkpoint)."),
                dataclasses.field(default=False))]
-    fields += [(name, _arg(Optional[Path], _doc(Sources, name)), dataclasses.field(default=None)) for name in sources]
+    fields += [(name, _arg(Optional[Path], field_doc(Sources, name)), dataclasses.field(default=None))
+               for name in sources]
     hints = typing.get_type_hints(Config)
     fields += [(s, _arg(hints[s], hints[s].__doc__.split("\n")[0]), dataclasses.field(default_factory=hints[s]))
                for s in sections]
@@ -101,6 +81,11 @@ def _parse(cls, sections: list[str], argv: list[str], prog: str, required: str =
     known, _ = pre.parse_known_args(argv)
     cfg = load_config(known.config)
     default = cls(**{required: tyro.MISSING}, config=known.config, **{s: getattr(cfg, s) for s in sections})
+    if "-h" in argv or "--help" in argv:  # the options a user needs; --help-all: tyro's listing of all
+        print(short_help(cls, default, prog))
+        raise SystemExit(0)
+    if "--help-all" in argv:
+        argv = ["--help"]
     return tyro.cli(cls, default=default, args=argv, prog=prog, description=cls.__doc__)
 
 
@@ -135,7 +120,7 @@ def _reconstruct(argv: list[str]) -> None:
 
 
 def _batch_class():
-    from .batch import BatchConfig
+    from pipeline.batch.config import BatchConfig
 
     fields = [("captures", tyro.conf.Positional[Annotated[Path, tyro.conf.arg(
                   metavar="CAPTURES", help="Folder of capture folders: one sub-folder of photos per object (with "
@@ -155,7 +140,7 @@ COMMAND_CLASSES["batch"] = _batch_class()
 
 
 def _batch(argv: list[str]) -> None:
-    from .batch import run_batch
+    from pipeline.batch.runner import run_batch
 
     a = _parse(COMMAND_CLASSES["batch"], RECONSTRUCT_SECTIONS, argv, "python -m pipeline batch", "captures")
     out = a.out or Path("work") / Path(a.captures).resolve().name
@@ -168,16 +153,12 @@ def _batch(argv: list[str]) -> None:
 
 
 def _synth(argv):
-    from .synth import load_scene_file, write_scene
-
-    a = tyro.cli(SynthArgs, args=argv, prog="python -m pipeline synth")
-    meta = write_scene(load_scene_file(a.scene), a.out)
-    print(f"synth: {meta['n_views']} views (+{meta['n_heldout']} held out) in {meta['seconds']:.1f} s → {a.out}; "
-          f"passes: {', '.join(meta['passes'])}")
+    raise StageError("the scene generator is a command of its own: python -m synth SCENE OUT (or make synth "
+                     "SCENE=… OUT=…)")
 
 
 def _board(argv):
-    from .board import board_spec, write_page
+    from pipeline.cameras.board import board_spec, write_page
 
     a = tyro.cli(BoardArgs, args=argv, prog="python -m pipeline board")
     spec = board_spec(a.squares, a.square_mm, a.marker_mm, a.dictionary, "python -m pipeline board")
@@ -190,12 +171,20 @@ COMMANDS = {"synth": _synth, **{s.name: _stage_command(s) for s in STAGES}, "rec
             "batch": _batch, "board": _board}
 
 
+def usage() -> str:
+    """What ``python -m pipeline`` prints without a command: the commands, one line each."""
+    rows = [("reconstruct", COMMAND_CLASSES["reconstruct"].__doc__)] + [(st.name, st.summary) for st in STAGES] + [
+        ("batch", COMMAND_CLASSES["batch"].__doc__), ("board", BoardArgs.__doc__.split(":")[0] + ".")]
+    return "\n".join(["usage: python -m pipeline <command> WORKSPACE [--config FILE] [--force] [options]", "",
+                      "commands:"] + [f"  {name:<12} {' '.join(text.split())}" for name, text in rows] + [
+        "", "python -m pipeline <command> --help    the options a user needs; --help-all: every option"])
+
+
 def main(argv: list[str] | None = None) -> int:
     """The command line; returns the exit code (2 with a one-line message on bad input)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
-        print("usage: python -m pipeline {" + ",".join(COMMANDS) + "} WORKSPACE [--config FILE] [--force] [options]\n"
-              "       python -m pipeline <command> --help   for the options of a command")
+        print(usage())
         return 0 if argv and argv[0] in ("-h", "--help") else 2
     try:
         COMMANDS[argv[0]](argv[1:])

@@ -1,9 +1,10 @@
-"""The config tree: one typed config per stage (each defined next to the code it configures), bundled in
-:class:`Config` (built from the stage table), loaded from YAML presets in ``configs/``.
+"""The config tree: one typed config per stage (each defined next to the code it configures, in the stage's
+``config.py``; the train stage's in ``dvr/config.py``), bundled in :class:`Config`, loaded from YAML presets in
+``configs/``.
 
-A preset only lists what differs from the defaults below; unknown keys are an error naming the key.
-The command-line options of every stage are generated from these dataclasses (their docstrings are the
-``--help`` text), and override the preset.
+A preset only lists what differs from the defaults; unknown keys are an error naming the key. The command-line
+options of every stage are generated from these dataclasses (their docstrings are the ``--help`` text), and
+override the preset. Range rules are declared on the fields (:mod:`dvr.options`).
 """
 
 from __future__ import annotations
@@ -12,20 +13,38 @@ import dataclasses
 import math
 import types
 import typing
-from dataclasses import field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
+from dvr.config import TrainConfig
 from dvr.device import resolve_device
+from dvr.options import is_positive
+from pipeline.cameras.config import CamerasConfig
+from pipeline.depth.config import DepthConfig
+from pipeline.masks.config import MasksConfig
+from pipeline.mesh.config import MeshConfig
+from pipeline.texture.config import TextureConfig
 
-from .stages import STAGES
 
-Config = dataclasses.make_dataclass(
-    "Config", [(s.name, s.options, field(default_factory=s.options)) for s in STAGES if s.options is not None])
-Config.__module__ = __name__  # pickles by name (Ray sends configs to its workers)
-Config.__doc__ = """All stage configs: a field per stage of :data:`pipeline.stages.STAGES` that has options, named
-after it (``cfg.train.iterations``; YAML ``train: {iterations: …}``; CLI ``--train.iterations``)."""
+@dataclass
+class Config:
+    """All stage configs: a field per stage of :data:`pipeline.stages.STAGES` that has options, named after it
+    (``cfg.train.iterations``; YAML ``train: {iterations: …}``; CLI ``--train.iterations``)."""
+
+    cameras: CamerasConfig = field(default_factory=CamerasConfig)
+    """Camera estimation (stage ``cameras``)."""
+    masks: MasksConfig = field(default_factory=MasksConfig)
+    """Object masks (stage ``masks``)."""
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    """Sparse depth from the SfM tracks (stage ``depth``)."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """DVR training (stage ``train``)."""
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    """Mesh extraction and cleaning (stage ``mesh``)."""
+    texture: TextureConfig = field(default_factory=TextureConfig)
+    """UV texture from the photos (stage ``texture``)."""
 
 
 def _resolve(tp):
@@ -89,24 +108,9 @@ def load_config(path: str | Path | None) -> Config:
     return cfg
 
 
-POSITIVE = frozenset({
-    "cameras.max_side_sfm", "cameras.max_side", "cameras.video_frames", "cameras.max_features",
-    "cameras.min_track_length", "cameras.radius_margin", "cameras.board_square_mm", "cameras.board_marker_mm",
-    "cameras.final_error_ratio",
-    "masks.hull_res", "masks.stereo_scale", "masks.stereo_depths", "depth.min_track_length",
-    "train.iterations", "train.batch_rays", "train.n_steps", "train.n_steps_final",
-    "train.hull_res", "train.photo_hull_res", "train.frame_margin", "train.checkpoint_every", "train.log_every",
-    "train.min_framing_views",
-    "train.field.base_res",
-    "train.field.plane_features", "train.field.hidden", "train.field.mlp_layers",
-    "mesh.resolution", "mesh.coarse_factor", "mesh.max_faces", "texture.size"})
-"""Options that must be above 0 (sizes, counts, resolutions, scales); every other number must be finite and ≥ 0
-(every default is: a 0 there switches a term or a step off)."""
-
-
-def _rule_broken(name: str, tp, value) -> str | None:
-    """What ``value`` of option ``name`` (type ``tp``) must be, when it is not; None when it is fine."""
-    positive = name in POSITIVE
+def _rule_broken(tp, value, positive: bool) -> str | None:
+    """What ``value`` of an option of type ``tp`` (``positive``: declared above 0, :mod:`dvr.options`) must be,
+    when it is not; None when it is fine."""
     if tp is bool:
         return None if isinstance(value, bool) else "true or false"
     if tp is int:
@@ -132,18 +136,21 @@ def _rule_broken(name: str, tp, value) -> str | None:
 def check_config(cfg, where: str = "", here: bool = False) -> None:
     """ValueError, one line naming the option, its value and what it must be, for an option of a config (the whole
     :class:`Config` or a stage's section, ``where`` its prefix: ``"texture."``) of the wrong type or out of range
-    (:data:`POSITIVE`): a YAML preset can hold anything, and a negative size or a NaN would fail deep inside a
-    stage, after the stages before it have run. ``here``: the stages run on this machine, so a ``device`` it lacks
-    is named too (not when a preset is read: a batch's head node may have no GPU where its workers do)."""
-    hints = typing.get_type_hints(type(cfg))
+    (the range rules declared on the fields, :mod:`dvr.options`): a YAML preset can hold anything, and a negative size
+    or a NaN would fail deep inside a stage, after the stages before it have run. ``here``: the stages run on this
+    machine, so a ``device`` it lacks is named too (not when a preset is read: a batch's head node may have no GPU
+    where its workers do)."""
+    hints = typing.get_type_hints(type(cfg), include_extras=True)
     for f in dataclasses.fields(cfg):
-        name, value, tp = where + f.name, getattr(cfg, f.name), _resolve(hints[f.name])
+        hint = hints[f.name]
+        name, value, tp = where + f.name, getattr(cfg, f.name), _resolve(typing.get_args(hint)[0] if is_positive(
+            hint) else hint)
         if dataclasses.is_dataclass(tp):
             if not isinstance(value, tp):
                 raise ValueError(f"{name}: expected a mapping of its options, got {value!r}")
             check_config(value, name + ".", here)
             continue
-        rule = _rule_broken(name, tp, value)
+        rule = _rule_broken(tp, value, is_positive(hint))
         if rule is not None:
             raise ValueError(f"--{name.replace('_', '-')} = {value!r}: must be {rule} (fix it on the command line "
                              "or in the YAML preset)")

@@ -24,15 +24,23 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-from dvr.trainer import TrainConfig
-
-from . import cameras, depth, masks, mesh, report, texture, train
-from .workspace import Done, Job, Sources, StageError, Workspace, config_hash
-
-if TYPE_CHECKING:  # config.py builds Config from this table
-    from .config import Config
+from dvr.config import TrainConfig
+from pipeline.cameras import stage as cameras
+from pipeline.cameras.config import CamerasConfig
+from pipeline.config import Config, check_config
+from pipeline.depth import stage as depth
+from pipeline.depth.config import DepthConfig
+from pipeline.errors import StageError
+from pipeline.masks import stage as masks
+from pipeline.masks.config import MasksConfig
+from pipeline.mesh import stage as mesh
+from pipeline.mesh.config import MeshConfig
+from pipeline.report import stage as report
+from pipeline.texture import stage as texture
+from pipeline.texture.config import TextureConfig
+from pipeline.train import stage as train
+from pipeline.workspace import Done, Job, Sources, Workspace, config_hash
 
 Paths = Callable[[Workspace], list[Path]]
 
@@ -60,7 +68,7 @@ class Stage:
     """Fields of :class:`~pipeline.workspace.Sources` it reads (CLI options; part of its config hash)."""
     from_photos: bool = False
     """:func:`reconstruct` runs it only when given photos or one of its own ``sources``: a workspace made by
-    ``python -m pipeline synth`` already has its images, masks and cameras."""
+    ``python -m synth`` already has its images, masks and cameras."""
     always: bool = False
     """Run even when up to date (the report: cheap, and it shows the latest state)."""
     check: Callable[[Workspace, Sources], None] | None = None
@@ -94,20 +102,20 @@ def _mask_files(ws: Workspace) -> list[Path]:
 STAGES: tuple[Stage, ...] = (
     Stage("cameras", "Estimate cameras with COLMAP (reads the photos; writes sfm/, images/, cameras.npz, points.ply, "
           "exposure.json).",
-          cameras.run, cameras.CamerasConfig,
+          cameras.run, CamerasConfig,
           requires=lambda ws: [],
           inputs=lambda ws, src: [p for p in (src.images, src.given_cameras) if p is not None],
           outputs=lambda ws: [ws.cameras, ws.images, ws.root / "points.ply"]
           + ([ws.exposure] if ws.sfm_model.exists() else []),  # measured on the SfM points
           sources=("images", "given_cameras"), from_photos=True, check=_photos_outside_workspace),
     Stage("masks", "Object masks (reads images/, cameras.npz, sfm/, exposure.json; writes masks/*.png, "
-          "masks/overlays/, masks/confidence.json).", masks.run, masks.MasksConfig,
+          "masks/overlays/, masks/confidence.json).", masks.run, MasksConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.images, ws.cameras] + ([src.masks_dir] if src.masks_dir else [])
           + _if_there(ws.exposure),
           outputs=_mask_files, sources=("masks_dir",), from_photos=True),
     Stage("depth", "Sparse depth from the SfM tracks (reads sfm/, cameras.npz; writes depth/*.npz).",
-          depth.run, depth.DepthConfig,
+          depth.run, DepthConfig,
           requires=lambda ws: [(ws.images, "cameras"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.cameras, ws.root / "sfm"],
           outputs=lambda ws: [ws.depth] if ws.sfm_model.exists() else [], from_photos=True),
@@ -118,12 +126,12 @@ STAGES: tuple[Stage, ...] = (
           outputs=lambda ws: [ws.model / "final.pt"]),
     Stage("mesh", "Extract and clean the mesh (reads model/, points.ply, with --mesh.drop-unseen cameras.npz; writes "
           "mesh/raw.ply and mesh/clean.ply).",
-          mesh.run, mesh.MeshConfig,
+          mesh.run, MeshConfig,
           requires=lambda ws: [(ws.model / "final.pt", "train")],
           inputs=lambda ws, src: [ws.model / "final.pt", ws.root / "points.ply", ws.cameras],
           outputs=lambda ws: [ws.mesh / "clean.ply", ws.mesh / "raw.ply"]),
     Stage("texture", "UV-texture the clean mesh from the photos (reads mesh/clean.ply, model/, images/, "
-          "cameras.npz; writes mesh/textured.obj/.mtl/.png and mesh/textured.glb).", texture.run, texture.TextureConfig,
+          "cameras.npz; writes mesh/textured.obj/.mtl/.png and mesh/textured.glb).", texture.run, TextureConfig,
           requires=lambda ws: [(ws.mesh / "clean.ply", "mesh"), (ws.images, "cameras"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.mesh / "clean.ply", ws.images, ws.cameras, ws.model / "final.pt",
                                   ws.model / "appearance.json"],
@@ -165,8 +173,6 @@ class _Plan:
 
 
 def _plan(name: str, workspace, config, images, masks_dir, given_cameras) -> _Plan:
-    from .config import Config
-
     stage = stage_named(name)
     ws = workspace if isinstance(workspace, Workspace) else Workspace(workspace)
     src = _sources(stage, images, masks_dir, given_cameras)
@@ -196,8 +202,6 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
     returns whether it ran. ``images``, ``masks_dir`` and ``given_cameras`` are the user's paths for the stages that
     read them; ``stop_after`` stops training early (tests of resuming). Raises StageError (one line: the file and
     the fix) on bad input."""
-    from .config import check_config
-
     p = _plan(name, workspace, config, images, masks_dir, given_cameras)
     stage, ws = p.stage, p.ws
     if p.cfg is not None:
@@ -217,7 +221,8 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
     before = ws.begin(name, outputs)
     t0 = time.perf_counter()
     try:
-        done = stage.body(Job(ws, p.cfg, p.src, force, p.config_hash, inputs, stop_after))
+        done = stage.body(Job(ws, p.cfg, p.src, force, p.config_hash, inputs, stop_after,
+                               tuple(s.name for s in STAGES)))
     except BaseException:  # a failure that wrote nothing (bad input found first) leaves the workspace as it was
         ws.undo_begin(name, outputs, before)
         raise
@@ -230,8 +235,8 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
 
 def check_user_masks(images: str | Path, masks_dir: str | Path) -> None:
     """The user's ``masks_dir`` holds a mask for every photo of the folder ``images``
-    (:func:`pipeline.masks.mask_files`), checked before SfM runs, so that a missing mask is said at once, not after
-    the cameras stage; StageError with the masks stage's own line otherwise. A video's frames are named only once
+    (:func:`pipeline.masks.stage.mask_files`), checked before SfM runs, so that a missing mask is said at once, not
+    after the cameras stage; StageError with the masks stage's own line otherwise. A video's frames are named only once
     extracted: nothing to check then."""
     if Path(images).is_dir():
         masks.mask_files([p.stem for p in cameras.list_photos(Path(images))[0]], Path(masks_dir))
@@ -242,10 +247,8 @@ def reconstruct(images: str | Path | None, workspace: str | Path, config: Config
                 force: bool = False) -> Path:
     """Every stage in order, each skipped when up to date (a killed run resumes where it stopped); returns the
     textured GLB. Without ``images`` the workspace must already hold images/, masks/ and cameras.npz (as
-    ``python -m pipeline synth`` writes them); ``masks_dir`` gives user masks, ``given_cameras`` skips SfM (and needs
+    ``python -m synth`` writes them); ``masks_dir`` gives user masks, ``given_cameras`` skips SfM (and needs
     ``images``)."""
-    from .config import Config, check_config
-
     check_config(config or Config(), here=True)  # every stage's options before the first stage runs
     ws = Workspace(workspace)
     if images is None and not ws.cameras.exists():

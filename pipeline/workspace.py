@@ -19,9 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-
-class StageError(Exception):
-    """A one-line, user-facing error (file + fix); the CLI prints it and exits with code 2."""
+from pipeline.errors import StageError  # moved
 
 
 class Workspace:
@@ -54,7 +52,7 @@ class Workspace:
 
     @property
     def exposure(self) -> Path:
-        """Per-view exposure gains measured on the SfM points by the cameras stage (pipeline/exposure.py)."""
+        """Per-view exposure gains measured on the SfM points by the cameras stage (pipeline/scene/exposure.py)."""
         return self.root / "exposure.json"
 
     @property
@@ -219,6 +217,8 @@ class Job:
     """The paths whose modification makes the stage stale (its row's ``inputs``)."""
     stop_after: int | None = None
     """Train stage: stop after this many steps without finishing (tests of resuming); None: run to the end."""
+    stage_order: tuple[str, ...] = ()
+    """The names of every stage in the order :func:`pipeline.stages.reconstruct` runs them (the report's table)."""
 
 
 @dataclass
@@ -281,6 +281,6 @@ def subset_workspace(full: Path, dst: Path, keep: list[int]) -> None:
     if (Path(full) / "points.ply").exists():
         shutil.copy2(Path(full) / "points.ply", Path(dst) / "points.ply")
     if Workspace(full).exposure.exists():  # the photos' gains, of the views kept
-        from .exposure import read_exposure, write_exposure
+        from pipeline.scene.exposure import read_exposure, write_exposure
 
         write_exposure(Workspace(dst).exposure, read_exposure(Workspace(full).exposure, [names[i] for i in keep]))

@@ -51,7 +51,7 @@ def tiny_training(cfg, iterations: int, batch_rays: int):
 
 def small_scene(**over):
     """8 views at 64 px of a checker torus (renders in well under a second)."""
-    from pipeline.synth import scene_from_dict
+    from synth import scene_from_dict
 
     d = {"name": "small", "shape": {"kind": "torus", "radius": 0.5, "minor": 0.2},
          "albedo": {"kind": "checker", "scale": 4.0},
@@ -66,7 +66,7 @@ def small_scene(**over):
 
 @pytest.fixture(scope="session")
 def small_ws(tmp_path_factory):
-    from pipeline.synth import write_scene
+    from synth import write_scene
 
     ws = tmp_path_factory.mktemp("small")
     write_scene(small_scene(sparse_depth=50), ws)
@@ -82,8 +82,8 @@ def board_scene(tmp_path_factory):
     import yaml
 
     from dvr.cameras import load_cameras
-    from pipeline.synth import write_scene
-    from pipeline.synth.scene import scene_from_dict
+    from synth import write_scene
+    from synth.scene import scene_from_dict
 
     d = yaml.safe_load((ROOT / "configs/scenes/torus_board.yaml").read_text())
     d["lighting"] = {"kind": "none"}

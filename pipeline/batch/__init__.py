@@ -1,0 +1,1 @@
+"""Many captures at once on Ray: ``python -m pipeline batch``."""

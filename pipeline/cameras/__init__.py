@@ -1,0 +1,1 @@
+"""Stage ``cameras``: photos → COLMAP model, undistorted images/, cameras.npz, points.ply."""

@@ -1,0 +1,1 @@
+"""Stage ``depth``: sparse depth from the SfM tracks."""

@@ -1,0 +1,1 @@
+"""Stage ``masks``: object masks, automatic or the user's."""

@@ -1,0 +1,1 @@
+"""Stage ``mesh``: the trained occupancy's isosurface, cleaned."""

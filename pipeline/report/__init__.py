@@ -1,0 +1,1 @@
+"""Stage ``report``: report.html from everything in the workspace."""

@@ -1,0 +1,1 @@
+"""Facts about the capture that several stages read: the support plane and the photos' exposure."""

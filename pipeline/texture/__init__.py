@@ -1,0 +1,1 @@
+"""Stage ``texture``: the clean mesh UV-textured from the photos."""

@@ -1,0 +1,132 @@
+"""The UV atlas: xatlas charts, every face rasterised into it, each texel's surface point, normal and face, and the
+gutter grown around the charts."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import trimesh
+
+ATLAS_UTILISATION = 0.45
+"""Share of its square that xatlas's atlas fills with charts (these chart options, 4 texels of padding): 0.42-0.50
+on DTU's mesh, the cow and the fuze bottle at 2048-texel sides, 0.30-0.42 at 1000."""
+
+
+def filling_density(side: float, area: float) -> float:
+    """Texels per unit length at which xatlas's atlas of a surface of ``area`` about fills a ``side`` square."""
+    return side * float(np.sqrt(ATLAS_UTILISATION / max(area, 1e-12)))
+
+
+def make_atlas(verts: np.ndarray, faces: np.ndarray, density: float, padding: int, max_side: int,
+               min_side: int = 256):
+    """xatlas at ``density`` texels per unit length (its atlas as large as that needs; re-charted at a density
+    scaled to fit when its longer side falls outside [``min_side``, ``max_side``]) → (vmapping, faces into the new
+    vertices, uvs in [0, 1] of a square texture, its side). The uvs keep xatlas's texel grid: a chart's texels and
+    padding are texels of the texture (a non-square atlas sits in the square's lower left); only an atlas still
+    past ``max_side`` after three tries is scaled down onto it."""
+    import xatlas  # here, not at the top: the config tree imports this module
+
+    co = xatlas.ChartOptions()
+    co.max_iterations = 1  # 2-4× faster than the default 4; charts are slightly less round
+    # charts grow in superlinear time on large flat regions (a 40 k-face book: 41 s); bounding their boundary
+    # length to half the surface's scale takes 1-2 s, for ~20 % less atlas utilisation
+    area = trimesh.Trimesh(verts, faces, process=False).area
+    co.max_boundary_length = 0.5 * float(np.sqrt(area))
+    # charting again costs as much as the first time: a density whose atlas would pass the cap starts below it
+    density = min(density, filling_density(max_side, area))
+    po = xatlas.PackOptions()
+    po.padding = padding
+    po.bilinear = True
+    verts32, faces32 = verts.astype(np.float32), faces.astype(np.uint32)
+    for _ in range(3):
+        po.texels_per_unit = float(density)
+        atlas = xatlas.Atlas()
+        atlas.add_mesh(verts32, faces32)
+        atlas.generate(co, po)
+        w, h = atlas.width, atlas.height
+        side = max(w, h)
+        if min_side <= side <= max_side:
+            break
+        # the atlas's side scales about linearly with the density; 2 % inside the bound leaves room for the packing
+        density *= (0.98 * max_side if side > max_side else 1.02 * min_side) / side
+    vmap, idx, uvs = atlas[0]
+    uvs = uvs.astype(np.float64) * np.array([w, h]) / side
+    return vmap, idx.astype(np.int64), uvs, int(min(side, max_side))
+
+
+def rasterize_atlas(uvs: np.ndarray, faces: np.ndarray, size: int) -> np.ndarray:
+    """(size, size) int32 face index per texel (−1: empty). Row 0 is v = 1 (image convention)."""
+    shift = 4
+    scale = float(1 << shift)
+    xy = np.stack([uvs[:, 0] * size - 0.5, (1.0 - uvs[:, 1]) * size - 0.5], 1)
+    tri = np.round(xy[faces] * scale).astype(np.int32)  # (F, 3, 2) fixed point
+    ids = np.full((size, size, 3), 255, np.uint8)
+    for f in range(len(faces)):
+        c = ((f >> 16) & 255, (f >> 8) & 255, f & 255)
+        cv2.fillConvexPoly(ids, tri[f], c, lineType=cv2.LINE_8, shift=shift)
+    fid = (ids[..., 0].astype(np.int64) << 16) | (ids[..., 1].astype(np.int64) << 8) | ids[..., 2]
+    fid[fid == 0xFFFFFF] = -1
+    return fid.astype(np.int32)
+
+
+def texel_geometry(fid: np.ndarray, uvs: np.ndarray, faces: np.ndarray, verts: np.ndarray, normals: np.ndarray,
+                   with_bary: bool = False):
+    """Texel rows/cols, their 3-D points and (interpolated) normals; ``with_bary``: also each texel's face index
+    (M,) and barycentrics (M, 3). Computed coordinate by coordinate (contiguous 1-D arrays, several × faster than
+    (M, 3) rows) in chunks of texels; the (M, 3) results are transposes of (3, M) arrays."""
+    size = fid.shape[0]
+    r, c = np.nonzero(fid >= 0)
+    f = fid[r, c]
+    pts, nrm, bary = np.empty((3, len(f))), np.empty((3, len(f))), np.empty((3, len(f)))
+    corners = np.ascontiguousarray(faces.T)
+    uv, vert, normal = np.ascontiguousarray(uvs.T), np.ascontiguousarray(verts.T), np.ascontiguousarray(normals.T)
+    for s in range(0, len(f), 1 << 18):  # chunks: their temporaries stay small (cheap to allocate, in cache)
+        part = slice(s, s + (1 << 18))
+        corner = corners.take(f[part], 1)
+        bary[:, part] = _barycentrics(uv, corner, (c[part] + 0.5) / size, 1.0 - (r[part] + 0.5) / size)
+        for values, out in ((vert, pts), (normal, nrm)):  # per coordinate, the barycentric mix of the corners' values
+            for x, o in zip(values, out[:, part]):
+                np.add(x.take(corner[0]) * bary[0, part] + x.take(corner[1]) * bary[1, part],
+                       x.take(corner[2]) * bary[2, part], out=o)
+    nrm /= np.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]).clip(1e-12)
+    if with_bary:
+        return r, c, pts.T, nrm.T, f, bary.T
+    return r, c, pts.T, nrm.T
+
+
+def _barycentrics(uv: np.ndarray, corner: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    """(3, n) barycentrics of the points (px, py) in the UV triangles of corner vertex ids ``corner`` (3, n) (uv:
+    (2, V)), clipped to the triangle."""
+    u, v = uv
+    ax, ay = u.take(corner[0]), v.take(corner[0])
+    v0x, v0y = u.take(corner[1]) - ax, v.take(corner[1]) - ay
+    v1x, v1y = u.take(corner[2]) - ax, v.take(corner[2]) - ay
+    v2x, v2y = px - ax, py - ay
+    den = v0x * v1y - v1x * v0y
+    den = np.where(np.abs(den) < 1e-20, 1e-20, den)
+    w1 = (v2x * v1y - v1x * v2y) / den
+    w2 = (v0x * v2y - v2x * v0y) / den
+    bary = np.stack([np.clip(1 - w1 - w2, 0, 1), np.clip(w1, 0, 1), np.clip(w2, 0, 1)])
+    bary /= bary[0] + bary[1] + bary[2]
+    return bary
+
+
+def dilate_gutter(tex: np.ndarray, valid: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Grow colours ``n`` texels outwards from valid texels (mean of valid neighbours). Each step visits only the
+    texels it grows (the ring around the valid ones), not the whole texture."""
+    h, w = valid.shape
+    tex, grown = tex.copy(), valid.copy()
+    work = np.zeros((h + 2, w + 2, tex.shape[2]), tex.dtype)  # the valid colours, 0 elsewhere and on a 1-texel border
+    work[1:-1, 1:-1][valid] = tex[valid]
+    flat_work, flat_valid = work.reshape(-1, tex.shape[2]), np.pad(valid, 1).ravel()
+    ring = [dy * (w + 2) + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+    for _ in range(n):
+        r, c = np.nonzero(cv2.dilate(grown.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool) & ~grown)
+        if not len(r):
+            break
+        at = (r + 1) * (w + 2) + c + 1
+        total = sum(flat_work.take(at + d, 0) for d in ring)
+        count = sum(flat_valid.take(at + d).astype(tex.dtype) for d in ring)
+        tex[r, c] = flat_work[at] = total / count[:, None]
+        grown[r, c] = flat_valid[at] = True
+    return tex, grown

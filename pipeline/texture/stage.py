@@ -1,0 +1,234 @@
+"""Stage ``texture``: UV atlas + texture baked from the PHOTOS → ``mesh/textured.{obj,mtl,png,glb}``.
+
+1. xatlas charts the clean mesh; every face is rasterised into the atlas (OpenCV polygon fill with
+   sub-texel precision, one call per face — no per-texel loop over faces), giving each texel its face,
+   barycentrics, 3-D point and normal.
+2. Every view renders a depth map of the mesh (z-buffer, pipeline/render/zbuffer.py: the ray depth at every pixel
+centre,
+   as ray casting gives it); a texel is visible in a view when its projection's depth agrees with that map.
+3. Colour (:mod:`pipeline.texture.blend`) = weighted mean of the visible views' bilinear samples, weight =
+   cos(angle)^p / distance² × a feather towards the image border; the weights are sharpened so the best views
+   dominate. Colours come from 3-D points, so texels on both sides of a UV seam (same 3-D point) get the same
+   colour: seams match.
+4. Texels no photo sees take the trained texture field's colour; a gutter is dilated around every chart so
+   mip-maps do not bleed background into the surface.
+"""
+
+from __future__ import annotations
+
+import json
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from dvr.cameras import Cameras, load_cameras, project_points, to_normalized, to_sfm, transform_points
+from dvr.data import list_images
+from dvr.device import resolve_device
+from dvr.fields import Field, evaluate_in_chunks
+from pipeline.errors import StageError
+from pipeline.readers import load_mesh_file, read_model
+from pipeline.render.raycast import mesh_intersector, pixel_center_rays
+from pipeline.render.zbuffer import ray_depth_map
+from pipeline.texture.appearance import photos_for_bake  # moved
+from pipeline.texture.atlas import (  # moved
+    dilate_gutter,
+    filling_density,
+    make_atlas,
+    rasterize_atlas,
+    texel_geometry,
+)
+from pipeline.texture.blend import TexelSurface, bake
+from pipeline.texture.config import TextureConfig  # moved
+from pipeline.texture.export import export_textured  # moved
+from pipeline.workspace import Done, Job
+
+
+def depth_maps(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]]) -> list[np.ndarray]:
+    """Per view, the ray depth of the first mesh hit at every pixel centre (inf where none): z-buffer rasterisation
+    (:func:`pipeline.render.zbuffer.ray_depth_map`), ray casting for a view with a triangle across its camera plane."""
+    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    out, inter = [], None
+    for i, (w, h) in enumerate(sizes):
+        dep = ray_depth_map(verts, faces, cams.K[i], cams.R[i], cams.centers[i], w, h)
+        if dep is None:
+            inter = mesh_intersector(mesh) if inter is None else inter
+            dep = ray_cast_depth(inter, cams.K[i], cams.R[i], cams.centers[i], w, h)
+        out.append(dep)
+    return out
+
+
+def ray_cast_depth(inter, K: np.ndarray, R: np.ndarray, center: np.ndarray, w: int, h: int) -> np.ndarray:
+    """(h, w) ray depth of the first hit of ``inter`` (:func:`pipeline.render.raycast.mesh_intersector`) through every
+    pixel centre (inf where none)."""
+    o, d = pixel_center_rays(K, R, center, w, h)
+    loc, ir, _ = inter.intersects_location(o, d, multiple_hits=False)
+    dep = np.full(len(d), np.inf)
+    if len(ir):
+        np.minimum.at(dep, ir, np.linalg.norm(loc - o[ir], axis=1))
+    return dep.reshape(h, w)
+
+
+def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field: Field | None = None,
+                field_frame: np.ndarray | None = None, field_gain: np.ndarray | None = None) -> np.ndarray:
+    """Colours of the texels no photo sees: the trained texture field's when there is one (``field_frame``:
+    4×4 map of the field's frame to the frame of ``pts``; ``field_gain`` (3,): the per-view gains' common part,
+    which the photos keep and the field lacks, :func:`undo_appearance`), else the colour of the nearest seen texel
+    in 3-D (never black)."""
+    if field is not None:
+        dev = next(field.parameters()).device
+        q = pts[unseen]
+        if field_frame is not None:
+            q = transform_points(np.linalg.inv(field_frame), q)
+        with torch.no_grad():
+            q = torch.from_numpy(q).float().to(dev)
+            rgb = evaluate_in_chunks(field.texture, q, 65536, trailing_shape=(3,)).cpu().numpy()
+        return rgb if field_gain is None else np.clip(rgb * np.asarray(field_gain, np.float32), 0.0, 1.0)
+    if unseen.all():
+        return np.full((int(unseen.sum()), 3), 0.5)
+    from scipy.spatial import cKDTree
+
+    _, nn = cKDTree(pts[~unseen]).query(pts[unseen], k=1)
+    return col[~unseen][nn]
+
+
+def photo_texel_density(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]],
+                        min_cos: float = 0.3) -> float:
+    """Photo pixels per unit length on the surface where the photos see it best: per face, the largest
+    focal / distance over the views that see it from the front (cos > ``min_cos``) inside the image; the
+    area-weighted median over faces (0 when no view sees any face)."""
+    cen, nrm, area = mesh.triangles_center, mesh.face_normals, mesh.area_faces
+    best = np.zeros(len(cen))
+    P = cams.P
+    for i, (w, h) in enumerate(sizes):
+        view = cams.centers[i] - cen
+        dist = np.linalg.norm(view, axis=1).clip(1e-12)
+        uv, z = project_points(P[i], cen)
+        u, v = uv[:, 0], uv[:, 1]
+        ok = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h) & ((nrm * view).sum(1) / dist > min_cos)
+        best = np.maximum(best, np.where(ok, cams.K[i][0, 0] / dist, 0.0))
+    seen = best > 0
+    if not seen.any():
+        return 0.0
+    order = np.argsort(best[seen])
+    cum = np.cumsum(area[seen][order])
+    return float(best[seen][order][np.searchsorted(cum, 0.5 * cum[-1])])
+
+
+def texels_per_unit(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]], cfg: TextureConfig) -> float:
+    """The atlas's density: ``cfg.texel_density`` texels per photo pixel on the object
+    (:func:`photo_texel_density`); with ``texel_density`` 0 (or no view seeing the object), that which fills a
+    ``cfg.size`` square (:func:`make_atlas` keeps the side ≤ ``cfg.size``)."""
+    tpu = cfg.texel_density * photo_texel_density(mesh, cams, sizes) if cfg.texel_density > 0 else 0.0
+    return tpu if tpu > 0 else filling_density(cfg.size, mesh.area)
+
+
+def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams: Cameras, cfg: TextureConfig,
+                 field: Field | None = None, field_frame: np.ndarray | None = None,
+                 field_gain: np.ndarray | None = None, clipped: list[np.ndarray] | None = None):
+    """Normalized-frame mesh → (new verts, new faces, uvs, texture (side, side, 3) float, stats); the side follows
+    the photos' resolution on the object (:func:`texels_per_unit`). ``field_gain``: see :func:`fill_unseen`;
+    ``clipped``: the photos' over-exposed pixels (:func:`pipeline.texture.blend.clipped_pixels` of the photos as taken,
+    before :func:`undo_appearance`), down-weighted by ``clipped_weight``; default: none."""
+    images = [np.asarray(im, np.float32) for im in images]  # the bake's dtype: the extremes of float64 photos would
+    # not round-trip through the float32 statistics of the photo-consistency pass
+    base = trimesh.Trimesh(verts_n, faces, process=False)
+    sizes = [(im.shape[1], im.shape[0]) for im in images]
+    tpu = texels_per_unit(base, cams, sizes, cfg)
+    with ThreadPoolExecutor(1) as pool:  # the depth maps beside the atlas (xatlas releases the GIL), on a mesh of
+        # their own (trimesh's caches are not thread-safe)
+        deps = pool.submit(depth_maps, trimesh.Trimesh(verts_n, faces, process=False), cams, sizes)
+        vmap, nf, uvs, side = make_atlas(verts_n, faces, tpu, cfg.padding, cfg.size)
+        nv = verts_n[vmap]
+        normals = base.vertex_normals[vmap]
+        fid = rasterize_atlas(uvs, nf, side)
+        r, c, pts, nrm, face, bary = texel_geometry(fid, uvs, nf, nv, normals, with_bary=True)
+        deps = deps.result()
+    # the seam offsets live on the original vertices; xatlas keeps the faces' order, so ``face`` is a row of faces
+    surface = TexelSurface(vmap[nf[face]], bary, np.asarray(faces), len(verts_n), face)
+    col, wsum, band_only = bake(pts, nrm, images, cams, deps, cfg, surface, clipped)
+    unseen = wsum <= 0
+    fallback = unseen | band_only  # a colour only the silhouette band gives may be background: not trusted
+    if fallback.any():
+        col[fallback] = fill_unseen(pts, col, fallback, field, field_frame, field_gain)
+    tex = np.zeros((side, side, 3), np.float32)
+    tex[r, c] = col
+    valid = fid >= 0
+    tex, filled = dilate_gutter(tex, valid, cfg.gutter)
+    covered_faces = np.unique(fid[valid])
+    stats = {"size": side, "texels": int(valid.sum()), "unseen_frac": float(unseen.mean()) if len(unseen) else 0.0,
+             "faces": int(len(nf)), "faces_with_texels": int(len(covered_faces)), "filled": filled}
+    return nv, nf, uvs, tex, stats
+
+
+def upright(cams: Cameras, frame: str) -> tuple[np.ndarray, str]:
+    """(T, source): T the 4×4 rigid transform from the mesh's ``frame`` ('sfm' or 'normalized') to glTF's display
+    frame, ``source`` where its up came from ('support plane' or 'cameras'). +Y is up — the support plane's normal
+    (a printed board's z) or, floating, the capture's up (:func:`pipeline.scene.support.capture_up`); +Z points level at
+    the first photo's camera (a viewer's default view then looks from there); the origin is the object's sphere
+    centre, dropped onto the support plane when there is one. SfM's frame has no up of its own (COLMAP's is its
+    first camera's, y down), and viewers put glTF's +Y up, so without this the object opened upside down or
+    tilted."""
+    from pipeline.scene.support import capture_up
+
+    if cams.ground is not None:
+        up, source = np.asarray(cams.ground[:3], float), "support plane"
+        origin = -float(cams.ground[3]) * up / float(up @ up)  # the sphere centre (0) dropped onto the plane
+    else:
+        up, source, origin = capture_up(cams.R), "cameras", np.zeros(3)
+    up = up / np.linalg.norm(up)
+    toward = cams.centers[0] - origin
+    toward = toward - (toward @ up) * up
+    if np.linalg.norm(toward) < 1e-9:  # the first camera straight above: any level direction
+        toward = np.cross(up, np.eye(3)[np.argmin(np.abs(up))])
+    z = toward / np.linalg.norm(toward)
+    R = np.stack([np.cross(up, z), up, z])
+    if frame == "sfm":  # a rotation and a shift in the mesh's own units (SfM's; metres with a board)
+        origin = transform_points(cams.scale_mat, origin[None])[0]
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, -R @ origin
+    return T, source
+
+
+def read_clean_mesh(path: Path) -> trimesh.Trimesh:
+    """The mesh stage's ``clean.ply`` (StageError naming it: unreadable, no triangles, empty)."""
+    m = load_mesh_file(path, "ply", "mesh", "rerun the mesh stage (mesh --force)")
+    if not isinstance(m, trimesh.Trimesh):
+        raise StageError(f"{path}: holds no triangles ({type(m).__name__}); rerun the mesh stage (mesh --force)")
+    if len(m.faces) == 0:
+        raise StageError(f"{path}: empty mesh; retrain (train --force) or check the masks")
+    return m
+
+
+def run(job: Job) -> Done:
+    """Stage ``texture`` (called by :func:`pipeline.stages.run_stage`): the clean mesh UV-unwrapped and baked from
+    the photos (the texture field for texels no photo sees) → mesh/textured.obj/.mtl/.png and mesh/textured.glb."""
+    ws, cfg = job.ws, job.cfg
+    clean = ws.mesh / "clean.ply"
+    final = ws.model / "final.pt"
+    looks = ws.model / "appearance.json"  # per-view exposure and white balance fitted in training
+    paths = list_images(ws.images)
+    cams = load_cameras(ws.cameras, n_views=len(paths))
+    S = cams.scale_mat
+    m = read_clean_mesh(clean)
+    try:
+        mesh_frame = json.loads((ws.stages / "mesh.json").read_text()).get("frame", "sfm")
+    except (OSError, ValueError):
+        mesh_frame = "sfm"
+    verts_n = np.asarray(m.vertices, np.float64)
+    if mesh_frame == "sfm":
+        verts_n = to_normalized(verts_n, S)
+    images, field_gain, clipped = photos_for_bake(paths, looks, cfg)
+    field, _, field_frame = read_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
+    nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame,
+                                           field_gain, clipped)
+    out_v = to_sfm(nv, S) if cfg.frame == "sfm" else nv
+    display, up_from = upright(cams, cfg.frame)
+    export_textured(ws.mesh, out_v, nf, uvs, tex, display)
+    stats.pop("filled")
+    stats["glb_up"] = {"from": up_from, "node_matrix": np.round(display, 9).tolist()}
+    print(f"texture: {tex.shape[0]}² atlas, {100 * (1 - stats['unseen_frac']):.1f} % of texels from photos → "
+          f"{ws.mesh / 'textured.glb'}")
+    return Done(stats)

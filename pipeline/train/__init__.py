@@ -1,0 +1,1 @@
+"""Stage ``train``: the DVR fields trained (the method itself lives in ``dvr/``)."""
