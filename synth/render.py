@@ -25,9 +25,9 @@ import trimesh
 from skimage import measure
 
 from dvr.cameras import save_cameras, sphere_bounds, sphere_frame
-from pipeline.render.raycast import mesh_intersector
+from pipeline.render.raycast import MeshCaster
 from synth.ground import board_spec_of, ground_albedo, ground_shading, plane_hits
-from synth.noise import procedural_noise  # moved
+from synth.noise import procedural_noise
 from synth.scene import Effect, Scene, Shape
 
 
@@ -101,22 +101,19 @@ class MeshShape:
         gt = trimesh.Trimesh(m.vertices.copy(), m.faces.copy(), process=True)
         gt.merge_vertices(merge_tex=True, merge_norm=True)
         self.gt = gt
-        self.intersector = mesh_intersector(m)
+        self.caster = MeshCaster(m)
 
     def cast(self, o: np.ndarray, d: np.ndarray):
         """First hits: (hit mask, depth, point, normal, uv or None)."""
         n = o.shape[0]
-        loc, ir, it = self.intersector.intersects_location(o, d, multiple_hits=False)
+        ir, it, loc = self.caster.first_hits(o, d)
         hit = np.zeros(n, bool)
         depth = np.zeros(n)
         pts = np.zeros((n, 3))
         nrm = np.zeros((n, 3))
         uv = np.zeros((n, 2)) if self.uv is not None else None
         if len(ir):
-            dist = ((loc - o[ir]) * d[ir]).sum(1)
-            order = np.argsort(dist)[::-1]  # keep the nearest when a ray reports several
-            ir, it, loc, dist = ir[order], it[order], loc[order], dist[order]
-            hit[ir], depth[ir], pts[ir] = True, dist, loc
+            hit[ir], depth[ir], pts[ir] = True, ((loc - o[ir]) * d[ir]).sum(1), loc
             tri = self.mesh.triangles[it]
             bary = trimesh.triangles.points_to_barycentric(tri, loc)
             vn = self.mesh.vertex_normals[self.mesh.faces[it]]
@@ -256,7 +253,7 @@ def object_occlusion(scene: Scene, mesh_shape: MeshShape | None):
         tree = cKDTree(trimesh.sample.sample_surface(mesh_shape.gt, 60000, seed=0)[0])
         # beyond 6 radii the contact shadow is < 0.3 %: far queries (slow in a KD-tree) stop there
         reach = 6 * max(e.softness for e in scene.effects if e.kind == "ground")
-        return mesh_shape.intersector.intersects_any, lambda p: tree.query(p, distance_upper_bound=reach, workers=-1)[0]
+        return mesh_shape.caster.any_hit, lambda p: tree.query(p, distance_upper_bound=reach, workers=-1)[0]
     return (lambda o, d: sphere_trace(scene.shape, torch.from_numpy(o), torch.from_numpy(d))[0].numpy(),
             lambda p: sdf(scene.shape, torch.from_numpy(p)).numpy())
 

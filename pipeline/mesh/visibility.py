@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from pipeline.mesh.config import MeshConfig  # moved
+from pipeline.mesh.config import MeshConfig
 
 
 def seen_faces(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, R: np.ndarray, centres: np.ndarray,
@@ -14,16 +14,16 @@ def seen_faces(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, R: np.ndarra
     """(F,) bool: the faces some view sees first through a pixel centre; ``K``, ``R``, ``centres`` (N, …) in the
     frame of ``verts``, ``sizes`` each view's (height, width). A view of more than ``max_rays`` pixels casts through
     the centres of a coarser grid of them (every s-th pixel's neighbourhood: a 12 MP photo through 1 M rays)."""
-    from pipeline.render.raycast import mesh_intersector, pixel_center_rays
+    from pipeline.render.raycast import MeshCaster, pixel_center_rays
 
     if len(K) != len(sizes) or len(R) != len(K) or len(centres) != len(K):
         raise ValueError(f"seen_faces: {len(K)} K, {len(R)} R, {len(centres)} centres and {len(sizes)} sizes differ")
-    hits = mesh_intersector(trimesh.Trimesh(verts, faces, process=False))
+    caster = MeshCaster(trimesh.Trimesh(verts, faces, process=False))
     seen = np.zeros(len(faces), bool)
     for k, (h, w) in enumerate(sizes):
         s = max(1.0, float(np.sqrt(h * w / max_rays)))
         coarse = np.diag([1.0 / s, 1.0 / s, 1.0]) @ K[k]
-        first = hits.intersects_first(*pixel_center_rays(coarse, R[k], centres[k], int(w / s), int(h / s)))
+        first = caster.first_faces(*pixel_center_rays(coarse, R[k], centres[k], int(w / s), int(h / s)))
         seen[first[first >= 0]] = True
     return seen
 
@@ -35,13 +35,13 @@ def centre_seen_faces(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, R: np
     and first along the ray from the camera to it. Unlike :func:`seen_faces` it does not depend on a face covering a
     pixel centre: faces smaller than a pixel, which pixel rays hit only here and there, count as seen throughout."""
     from dvr.cameras import project_points
-    from pipeline.render.raycast import mesh_intersector
+    from pipeline.render.raycast import MeshCaster
 
     if len(K) != len(sizes) or len(R) != len(K) or len(centres) != len(K):
         raise ValueError(f"centre_seen_faces: {len(K)} K, {len(R)} R, {len(centres)} centres and {len(sizes)} sizes "
                          f"differ")
     mesh = trimesh.Trimesh(verts, faces, process=False)
-    hits = mesh_intersector(mesh)
+    caster = MeshCaster(mesh)
     mid, normal = mesh.triangles_center, mesh.face_normals
     seen = np.zeros(len(faces), bool)
     for k, (h, w) in enumerate(sizes):
@@ -54,7 +54,7 @@ def centre_seen_faces(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, R: np
         if len(ask) == 0:
             continue
         d = mid[ask] - c
-        first = hits.intersects_first(np.broadcast_to(c, d.shape), d / np.linalg.norm(d, axis=1, keepdims=True))
+        first = caster.first_faces(np.broadcast_to(c, d.shape), d / np.linalg.norm(d, axis=1, keepdims=True))
         seen[ask[first == ask]] = True
     return seen
 

@@ -1,4 +1,6 @@
-"""Ray casting against triangle meshes, shared by the stages: Embree when present, pixel-centre rays."""
+"""The one mesh ray-caster every stage uses (:class:`MeshCaster`: trimesh's ray queries on Embree, ``embreex``),
+and the rays it casts: through pixel centres (j + 0.5, i + 0.5), as COLMAP and ``grid_sample(align_corners=False)``
+place them. ``tests/pipeline/render/zbuffer.py`` (a numpy z-buffer) is its test reference."""
 
 from __future__ import annotations
 
@@ -8,14 +10,61 @@ import trimesh
 from dvr.cameras import project_points
 
 
-def mesh_intersector(mesh: trimesh.Trimesh):
-    """trimesh ray intersector for ``mesh``: Embree (``embreex``) when installed, else trimesh's own."""
+def _intersector(mesh: trimesh.Trimesh):
+    """trimesh's ray intersector for ``mesh``: Embree (``embreex``) when installed, else trimesh's own."""
     try:
         from trimesh.ray import ray_pyembree
 
         return ray_pyembree.RayMeshIntersector(mesh)
     except Exception:  # noqa: BLE001 - Embree is optional
         return trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
+
+
+class MeshCaster:
+    """A triangle mesh ready to be ray-cast many times (its Embree scene built once). Rays are (N, 3) origins and
+    unit directions in the mesh's frame."""
+
+    def __init__(self, mesh: trimesh.Trimesh):
+        self.mesh = mesh
+        self._inter = _intersector(mesh)
+
+    def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The nearest hit of each ray that meets the mesh: (ray index, face index, point), one row per ray."""
+        loc, ray, face = self._inter.intersects_location(origins, dirs, multiple_hits=False)
+        if len(ray) and len(np.unique(ray)) < len(ray):  # a ray reported twice: keep its nearest hit
+            dist = ((loc - origins[ray]) * dirs[ray]).sum(1)
+            order = np.lexsort((dist, ray))
+            keep = order[np.r_[True, ray[order][1:] != ray[order][:-1]]]
+            loc, ray, face = loc[keep], ray[keep], face[keep]
+        return ray, face, loc
+
+    def first_faces(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """(N,) the face each ray meets first, −1 where it meets none."""
+        return self._inter.intersects_first(origins, dirs)
+
+    def any_hit(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """(N,) bool: whether each ray meets the mesh."""
+        return self._inter.intersects_any(origins, dirs)
+
+    def depth_map(self, K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int, height: int) -> np.ndarray:
+        """(height, width) ray depth (distance along the unit ray) of the first hit through every pixel centre of a
+        pinhole camera (K, world→camera rotation R, camera centre); inf where the ray meets nothing."""
+        o, d = pixel_center_rays(K, R, center, width, height)
+        ray, _, loc = self.first_hits(o, d)
+        depth = np.full(len(d), np.inf)
+        depth[ray] = np.linalg.norm(loc - o[ray], axis=1)
+        return depth.reshape(height, width)
+
+    def covered_pixels(self, K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int, height: int) -> np.ndarray:
+        """(height, width) bool: the pixels whose centre's ray meets the mesh; only the rays of
+        :func:`projected_box` are cast (all when it bounds nothing)."""
+        box = projected_box(self.mesh.vertices, K, R, center, width, height)
+        y0, y1, x0, x1 = (0, height, 0, width) if box is None else box
+        out = np.zeros((height, width), bool)
+        if y1 > y0 and x1 > x0:
+            o, d = pixel_center_rays(K, R, center, width, height, (y0, y1, x0, x1))
+            out[y0:y1, x0:x1] = self.any_hit(o, d).reshape(y1 - y0, x1 - x0)
+        return out
 
 
 def pixel_center_rays(K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int, height: int,
@@ -49,17 +98,3 @@ def projected_box(vertices: np.ndarray, K: np.ndarray, R: np.ndarray, center: np
     x0, x1 = int(np.clip(np.floor(u.min()) - 1, 0, width)), int(np.clip(np.ceil(u.max()) + 1, 0, width))
     y0, y1 = int(np.clip(np.floor(v.min()) - 1, 0, height)), int(np.clip(np.ceil(v.max()) + 1, 0, height))
     return y0, max(y0, y1), x0, max(x0, x1)
-
-
-def covered_pixels(intersector, vertices: np.ndarray, K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int,
-                   height: int) -> np.ndarray:
-    """(height, width) bool: the pixels whose centre's ray meets the mesh of ``intersector``
-    (:func:`mesh_intersector`) with ``vertices``; only the rays of :func:`projected_box` are cast (all when it
-    bounds nothing)."""
-    box = projected_box(vertices, K, R, center, width, height)
-    y0, y1, x0, x1 = (0, height, 0, width) if box is None else box
-    out = np.zeros((height, width), bool)
-    if y1 > y0 and x1 > x0:
-        o, d = pixel_center_rays(K, R, center, width, height, (y0, y1, x0, x1))
-        out[y0:y1, x0:x1] = intersector.intersects_any(o, d).reshape(y1 - y0, x1 - x0)
-    return out

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from pipeline.render.raycast import mesh_intersector, pixel_center_rays
+from pipeline.render.raycast import MeshCaster, pixel_center_rays
 
 
 def sample_bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -30,7 +30,7 @@ class TexturedCaster:
 
     def __init__(self, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: np.ndarray):
         self.mesh = trimesh.Trimesh(verts, faces, process=False)
-        self.intersector = mesh_intersector(self.mesh)
+        self.caster = MeshCaster(self.mesh)
         self.uvs, self.tex = uvs, tex
 
     def render(self, K: np.ndarray, R: np.ndarray, center: np.ndarray, w: int, h: int,
@@ -42,7 +42,7 @@ class TexturedCaster:
         if box is not None:
             y0, y1, x0, x1 = box
             keep = (np.arange(y0, y1)[:, None] * w + np.arange(x0, x1)[None]).ravel()
-        loc, ir, it = self.intersector.intersects_location(o[keep], d[keep], multiple_hits=False)
+        ir, it, loc = self.caster.first_hits(o[keep], d[keep])
         img = np.zeros((h * w, 3))
         hit = np.zeros(h * w, bool)
         if len(ir):

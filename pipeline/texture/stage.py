@@ -3,9 +3,8 @@
 1. xatlas charts the clean mesh; every face is rasterised into the atlas (OpenCV polygon fill with
    sub-texel precision, one call per face — no per-texel loop over faces), giving each texel its face,
    barycentrics, 3-D point and normal.
-2. Every view renders a depth map of the mesh (z-buffer, pipeline/render/zbuffer.py: the ray depth at every pixel
-centre,
-   as ray casting gives it); a texel is visible in a view when its projection's depth agrees with that map.
+2. Every view renders a depth map of the mesh (the ray depth at every pixel centre, ray-cast by
+   pipeline/render/raycast.py); a texel is visible in a view when its projection's depth agrees with that map.
 3. Colour (:mod:`pipeline.texture.blend`) = weighted mean of the visible views' bilinear samples, weight =
    cos(angle)^p / distance² × a feather towards the image border; the weights are sharpened so the best views
    dominate. Colours come from 3-D points, so texels on both sides of a UV seam (same 3-D point) get the same
@@ -30,10 +29,9 @@ from dvr.device import resolve_device
 from dvr.fields import Field, evaluate_in_chunks
 from pipeline.errors import StageError
 from pipeline.readers import load_mesh_file, read_model
-from pipeline.render.raycast import mesh_intersector, pixel_center_rays
-from pipeline.render.zbuffer import ray_depth_map
-from pipeline.texture.appearance import photos_for_bake  # moved
-from pipeline.texture.atlas import (  # moved
+from pipeline.render.raycast import MeshCaster
+from pipeline.texture.appearance import photos_for_bake
+from pipeline.texture.atlas import (
     dilate_gutter,
     filling_density,
     make_atlas,
@@ -41,34 +39,16 @@ from pipeline.texture.atlas import (  # moved
     texel_geometry,
 )
 from pipeline.texture.blend import TexelSurface, bake
-from pipeline.texture.config import TextureConfig  # moved
-from pipeline.texture.export import export_textured  # moved
+from pipeline.texture.config import TextureConfig
+from pipeline.texture.export import export_textured
 from pipeline.workspace import Done, Job
 
 
 def depth_maps(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]]) -> list[np.ndarray]:
-    """Per view, the ray depth of the first mesh hit at every pixel centre (inf where none): z-buffer rasterisation
-    (:func:`pipeline.render.zbuffer.ray_depth_map`), ray casting for a view with a triangle across its camera plane."""
-    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    out, inter = [], None
-    for i, (w, h) in enumerate(sizes):
-        dep = ray_depth_map(verts, faces, cams.K[i], cams.R[i], cams.centers[i], w, h)
-        if dep is None:
-            inter = mesh_intersector(mesh) if inter is None else inter
-            dep = ray_cast_depth(inter, cams.K[i], cams.R[i], cams.centers[i], w, h)
-        out.append(dep)
-    return out
-
-
-def ray_cast_depth(inter, K: np.ndarray, R: np.ndarray, center: np.ndarray, w: int, h: int) -> np.ndarray:
-    """(h, w) ray depth of the first hit of ``inter`` (:func:`pipeline.render.raycast.mesh_intersector`) through every
-    pixel centre (inf where none)."""
-    o, d = pixel_center_rays(K, R, center, w, h)
-    loc, ir, _ = inter.intersects_location(o, d, multiple_hits=False)
-    dep = np.full(len(d), np.inf)
-    if len(ir):
-        np.minimum.at(dep, ir, np.linalg.norm(loc - o[ir], axis=1))
-    return dep.reshape(h, w)
+    """Per view, the ray depth of the first mesh hit at every pixel centre (inf where none)
+    (:meth:`pipeline.render.raycast.MeshCaster.depth_map`)."""
+    caster = MeshCaster(mesh)
+    return [caster.depth_map(cams.K[i], cams.R[i], cams.centers[i], w, h) for i, (w, h) in enumerate(sizes)]
 
 
 def fill_unseen(pts: np.ndarray, col: np.ndarray, unseen: np.ndarray, field: Field | None = None,

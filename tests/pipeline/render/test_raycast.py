@@ -1,11 +1,13 @@
-"""pipeline/render/raycast.py: pixel-centre rays (whole image or a box of it), the box a mesh's projection can cover,
-and the covered pixels cast only inside that box."""
+"""pipeline/render/raycast.py, the one mesh ray-caster: pixel-centre rays (whole image or a box of it), the box a
+mesh's projection can cover, the covered pixels cast only inside that box, first hits and faces, and depth maps
+against a numpy z-buffer (tests/pipeline/render/zbuffer.py, the test reference)."""
 
 import numpy as np
 import pytest
 import trimesh
 
-from pipeline.render.raycast import covered_pixels, mesh_intersector, pixel_center_rays, projected_box
+from pipeline.render.raycast import MeshCaster, pixel_center_rays, projected_box
+from tests.pipeline.render.zbuffer import ray_depth_map
 
 W, H = 64, 48
 K = np.array([[60.0, 0, W / 2], [0, 60.0, H / 2], [0, 0, 1]])
@@ -19,9 +21,9 @@ def _camera(centre):
     return np.stack([r, np.cross(f, r), f]), np.asarray(centre, float)
 
 
-def _all_rays_cover(inter, R, c):
+def _all_rays_cover(caster, R, c):
     o, d = pixel_center_rays(K, R, c, W, H)
-    return inter.intersects_any(o, d).reshape(H, W)
+    return caster.any_hit(o, d).reshape(H, W)
 
 
 def test_rays_of_a_box_are_those_of_the_whole_image():
@@ -35,12 +37,12 @@ def test_rays_of_a_box_are_those_of_the_whole_image():
 @pytest.mark.parametrize("centre", [[3.0, 0.5, 0.4], [0.2, -2.5, 1.0]])
 def test_covered_pixels_equal_casting_every_ray(centre):
     box = trimesh.creation.box(extents=[0.6, 0.4, 0.5])
-    inter = mesh_intersector(box)
+    caster = MeshCaster(box)
     R, c = _camera(centre)
     y0, y1, x0, x1 = projected_box(box.vertices, K, R, c, W, H)
     assert 0 < y1 - y0 < H or 0 < x1 - x0 < W  # a box smaller than the image: fewer rays cast
-    got = covered_pixels(inter, box.vertices, K, R, c, W, H)
-    assert got.any() and np.array_equal(got, _all_rays_cover(inter, R, c))
+    got = caster.covered_pixels(K, R, c, W, H)
+    assert got.any() and np.array_equal(got, _all_rays_cover(caster, R, c))
 
 
 def test_a_vertex_behind_the_camera_bounds_nothing_and_every_ray_is_cast():
@@ -48,9 +50,9 @@ def test_a_vertex_behind_the_camera_bounds_nothing_and_every_ray_is_cast():
     R, c = _camera([3.0, 0.5, 0.4])
     slab = trimesh.creation.box(extents=[8.0, 0.3, 0.3])  # from in front of the camera to behind it
     assert projected_box(slab.vertices, K, R, c, W, H) is None
-    inter = mesh_intersector(slab)
-    got = covered_pixels(inter, slab.vertices, K, R, c, W, H)
-    assert got.any() and np.array_equal(got, _all_rays_cover(inter, R, c))
+    caster = MeshCaster(slab)
+    got = caster.covered_pixels(K, R, c, W, H)
+    assert got.any() and np.array_equal(got, _all_rays_cover(caster, R, c))
 
 
 def test_a_mesh_outside_the_image_covers_nothing():
@@ -59,4 +61,71 @@ def test_a_mesh_outside_the_image_covers_nothing():
     far_side.apply_translation([0.0, 5.0, 0.0])  # beside the view, in front of the camera
     y0, y1, x0, x1 = projected_box(far_side.vertices, K, R, c, W, H)
     assert y1 == y0 or x1 == x0
-    assert not covered_pixels(mesh_intersector(far_side), far_side.vertices, K, R, c, W, H).any()
+    assert not MeshCaster(far_side).covered_pixels(K, R, c, W, H).any()
+
+
+def _scene_for_depth():
+    """A sphere, a box half occluding it and a floor under both (two big triangles, behind some cameras)."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.6)
+    box = trimesh.creation.box((0.4, 0.4, 0.4))
+    box.apply_translation((0.5, -0.5, 0.3))
+    floor = trimesh.Trimesh([[-2, -2, -0.7], [2, -2, -0.7], [2, 2, -0.7], [-2, 2, -0.7]], [[0, 1, 2], [0, 2, 3]])
+    return trimesh.util.concatenate([sphere, box, floor])
+
+
+def _off_centre_camera(centre):
+    """A camera at ``centre`` looking at the origin with non-square pixels and its principal point off centre."""
+    R, c = _camera(centre)
+    return np.array([[60.0, 0, 31.3], [0, 55.0, 20.7], [0, 0, 1]]), R, c
+
+
+def test_depth_maps_equal_the_z_buffer_reference():
+    """The caster's depth at every pixel centre is the z-buffer's: silhouettes, occlusion, the box's faces seen
+    edge-on, floor triangles larger than the image; a view where the floor crosses the camera plane, which the
+    z-buffer declines (None), still has its depth map."""
+    mesh = _scene_for_depth()
+    caster = MeshCaster(mesh)
+    declined = 0
+    for centre in [(2.5, 0.3, 1.2), (-1.8, 1.9, 0.4), (0.2, -2.6, 2.0), (1.0, -0.8, 2.6), (1.5, 1.5, -0.2)]:
+        Kc, R, c = _off_centre_camera(centre)
+        got = caster.depth_map(Kc, R, c, W, H)
+        want = ray_depth_map(mesh.vertices, mesh.faces, Kc, R, c, W, H)
+        assert got.shape == (H, W) and np.isfinite(got).sum() > 500
+        if want is None:
+            declined += 1
+            continue
+        assert (np.isfinite(want) != np.isfinite(got)).sum() <= 2, centre  # at most a grazing ray or two
+        both = np.isfinite(want) & np.isfinite(got)
+        close = np.abs(want[both] - got[both]) < 1e-6 * want[both]
+        assert close.mean() > 0.998, (centre, close.mean())
+    assert 1 <= declined <= 2  # the views behind which the floor reaches
+
+
+def test_the_z_buffer_reference_outside_the_image_and_behind_the_camera():
+    R, c = _camera([0.0, 0.1, 3.0])
+    far = trimesh.creation.box((0.1, 0.1, 0.1))
+    far.apply_translation((40.0, 0.0, 0.0))  # outside the image
+    d = ray_depth_map(far.vertices, far.faces, K, R, c, W, H)
+    assert d.shape == (H, W) and np.isinf(d).all()
+    assert np.isinf(MeshCaster(far).depth_map(K, R, c, W, H)).all()
+    behind = trimesh.creation.box((0.1, 0.1, 0.1))
+    behind.apply_translation((0.0, 0.2, 5.0))  # wholly behind the camera: skipped, not declined
+    d = ray_depth_map(behind.vertices, behind.faces, K, R, c, W, H)
+    assert d is not None and np.isinf(d).all()
+
+
+def test_first_hits_are_the_nearest_and_agree_with_first_faces():
+    """One row per ray that hits, the nearest surface of two stacked boxes; the same faces as ``first_faces`` and
+    the same rays as ``any_hit``."""
+    near, far = trimesh.creation.box((0.4, 0.4, 0.4)), trimesh.creation.box((0.4, 0.4, 0.4))
+    far.apply_translation((-0.8, 0.0, 0.0))
+    mesh = trimesh.util.concatenate([near, far])
+    caster = MeshCaster(mesh)
+    R, c = _camera([3.0, 0.0, 0.0])
+    o, d = pixel_center_rays(K, R, c, W, H)
+    ray, face, loc = caster.first_hits(o, d)
+    assert len(ray) == len(np.unique(ray)) > 40
+    assert np.allclose(loc[:, 0], 0.2)  # the near box's face towards the camera, never the far box
+    first = caster.first_faces(o, d)
+    assert np.array_equal(first[ray], face) and (first >= 0).sum() == len(ray)
+    assert np.array_equal(np.flatnonzero(caster.any_hit(o, d)), np.sort(ray))

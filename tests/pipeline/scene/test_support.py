@@ -316,19 +316,19 @@ def _box_and_table_masks(focal=500.0, table_radius=0.55, with_box=True):
     table GrabCut took with it)."""
     import trimesh
 
-    from pipeline.render.raycast import mesh_intersector, pixel_center_rays
+    from pipeline.render.raycast import MeshCaster, pixel_center_rays
 
     C, R = (np.concatenate(x) for x in zip(_ring(height=0.3, target=(0.0, 0.0, -0.2)),
                                              _ring(height=2.5, target=(0.0, 0.0, -0.2))))
     cams = _ring_cameras(C, R, focal)
     K = cams.K
     box = trimesh.creation.box((0.6, 0.4, 0.8), trimesh.transformations.translation_matrix((0, 0, -0.1)))
-    inter, masks = mesh_intersector(box), []
+    inter, masks = MeshCaster(box), []
     for i in range(len(C)):
         o, d = pixel_center_rays(K[i], R[i], C[i], 320, 240)
         reached, x = _floor_hits(o, d)
         table = reached & (np.hypot(x[:, 0], x[:, 1]) < table_radius)
-        masks.append(((inter.intersects_any(o, d) & with_box) | table).reshape(240, 320))
+        masks.append(((inter.any_hit(o, d) & with_box) | table).reshape(240, 320))
     return cams, masks, box
 
 
@@ -391,7 +391,7 @@ def _arch_views(n=12):
     where each view sees the floor through the gap between the legs (only the views along x see it)."""
     import trimesh
 
-    from pipeline.render.raycast import mesh_intersector, pixel_center_rays
+    from pipeline.render.raycast import MeshCaster, pixel_center_rays
 
     C, R = (np.concatenate(x) for x in zip(_ring(n, height=0.6, target=(0.0, 0.0, -0.2)),
                                              _ring(n, height=2.5, target=(0.0, 0.0, -0.2))))
@@ -401,18 +401,18 @@ def _arch_views(n=12):
     arch = trimesh.util.concatenate([box((0.4, 0.15, 0.3), move((0, y, -0.35))) for y in (-0.25, 0.25)]
                                     + [box((0.4, 0.65, 0.3), move((0, 0, -0.05)))])
     gap = box((0.4, 0.35, 0.3), move((0, 0, -0.35)))
-    on_arch, in_gap = mesh_intersector(arch), mesh_intersector(gap)
+    on_arch, in_gap = MeshCaster(arch), MeshCaster(gap)
     imgs, truth, through = [], [], []
     for i in range(len(C)):
         o, d = pixel_center_rays(cams.K[i], R[i], C[i], 320, 240)
         reached, x = _floor_hits(o, d)
         shade = 0.5 + 0.25 * np.sin(9 * x[:, 0]) * np.cos(7 * x[:, 1])  # the floor's pattern, brown
         img = np.where(reached[:, None], shade[:, None] * [60, 110, 170], [200, 150, 90])  # BGR; sky above
-        hit = on_arch.intersects_any(o, d)
+        hit = on_arch.any_hit(o, d)
         img[hit] = [225, 225, 225]
         imgs.append(img.reshape(240, 320, 3).astype(np.uint8))
         truth.append(hit.reshape(240, 320))
-        through.append((in_gap.intersects_any(o, d) & ~hit).reshape(240, 320))
+        through.append((in_gap.any_hit(o, d) & ~hit).reshape(240, 320))
     return cams, imgs, truth, through
 
 

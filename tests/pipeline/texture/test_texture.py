@@ -319,15 +319,15 @@ def make_cameras(centers, target, f: float, size: int, down=(0.0, 0.0, -1.0)):
 def render_mesh(mesh, colour_of, cams, size: int, background=(0.0, 0.0, 0.0), supersample: int = 3):
     """Ray-cast photos (float32, anti-aliased by ``supersample``²): ``colour_of(points) -> (N, 3)`` on the mesh,
     ``background`` elsewhere."""
-    from pipeline.render.raycast import mesh_intersector, pixel_center_rays
+    from pipeline.render.raycast import MeshCaster, pixel_center_rays
 
-    inter = mesh_intersector(mesh)
+    caster = MeshCaster(mesh)
     s = supersample
     out = []
     for i in range(len(cams)):
         K = np.diag([s, s, 1.0]) @ cams.K[i]
         o, d = pixel_center_rays(K, cams.R[i], cams.centers[i], size * s, size * s)
-        loc, ray, _ = inter.intersects_location(o, d, multiple_hits=False)
+        ray, _, loc = caster.first_hits(o, d)
         img = np.tile(np.asarray(background, np.float64), (len(d), 1))
         img[ray] = colour_of(loc)
         img = img.reshape(size * s, size * s, 3).astype(np.float32)
@@ -532,63 +532,6 @@ def test_robust_weights_values():
 
 
 # ---- fast paths against their simple references ----
-
-def _scene_for_depth():
-    """A sphere, a box half occluding it and a floor under both (two big triangles, behind some cameras)."""
-    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.6)
-    box = trimesh.creation.box((0.4, 0.4, 0.4))
-    box.apply_translation((0.5, -0.5, 0.3))
-    floor = trimesh.Trimesh([[-2, -2, -0.7], [2, -2, -0.7], [2, 2, -0.7], [-2, 2, -0.7]], [[0, 1, 2], [0, 2, 3]])
-    return trimesh.util.concatenate([sphere, box, floor])
-
-
-def test_zbuffer_depth_matches_ray_casting():
-    """The z-buffer depth maps (pipeline.render.zbuffer) are what ray casting gives at every pixel centre: silhouettes,
-    occlusion, the box's faces seen edge-on, floor triangles larger than the image. Where the floor crosses a
-    camera's plane the rasteriser declines (None) and depth_maps ray-casts that view."""
-    from dvr.cameras import Cameras
-    from pipeline.render.raycast import mesh_intersector
-    from pipeline.render.zbuffer import ray_depth_map
-    from pipeline.texture.stage import ray_cast_depth
-
-    mesh = _scene_for_depth()
-    centers = [(2.5, 0.3, 1.2), (-1.8, 1.9, 0.4), (0.2, -2.6, 2.0), (1.0, -0.8, 2.6), (1.5, 1.5, -0.2)]
-    cams = make_cameras(centers, (0, 0, 0), 60.0, 72)
-    K = cams.K.copy()
-    K[:, 1, 1], K[:, 0, 2], K[:, 1, 2] = 55.0, 31.3, 40.7  # non-square pixels, principal point off centre
-    cams = Cameras(K, cams.R, cams.t, np.eye(4))
-    w, h = 72, 60
-    inter = mesh_intersector(mesh)
-    maps = depth_maps(mesh, cams, [(w, h)] * len(cams))
-    declined = 0
-    for i in range(len(cams)):
-        want = ray_cast_depth(inter, cams.K[i], cams.R[i], cams.centers[i], w, h)
-        raster = ray_depth_map(mesh.vertices, mesh.faces, cams.K[i], cams.R[i], cams.centers[i], w, h)
-        declined += raster is None
-        got = maps[i]
-        if raster is not None:
-            assert np.array_equal(raster, got)
-        both = np.isfinite(want) & np.isfinite(got)
-        assert (np.isfinite(want) != np.isfinite(got)).sum() <= 2, i  # at most a grazing ray or two
-        assert both.sum() > 1000
-        close = np.abs(want[both] - got[both]) < 1e-6 * want[both]
-        assert close.mean() > 0.998, (i, close.mean())
-    assert 1 <= declined <= 2
-
-
-def test_depth_maps_without_triangles_in_view():
-    from pipeline.render.zbuffer import ray_depth_map
-
-    cams = make_cameras([(0, 0, 3.0)], (0, 0, 0), 50.0, 16, down=(0.0, -1.0, 0.0))
-    far = trimesh.creation.box((0.1, 0.1, 0.1))
-    far.apply_translation((40.0, 0.0, 0.0))  # outside the image
-    d = ray_depth_map(far.vertices, far.faces, cams.K[0], cams.R[0], cams.centers[0], 16, 16)
-    assert d.shape == (16, 16) and np.isinf(d).all()
-    behind = trimesh.creation.box((0.1, 0.1, 0.1))
-    behind.apply_translation((0.0, 0.0, 5.0))  # wholly behind the camera: skipped, not a fallback
-    d = ray_depth_map(behind.vertices, behind.faces, cams.K[0], cams.R[0], cams.centers[0], 16, 16)
-    assert d is not None and np.isinf(d).all()
-
 
 def _reference_accumulate(n, views, extremes):
     """The blend sums one view at a time, as the bake first computed them; the extremes per tier."""

@@ -1,7 +1,8 @@
-"""Depth maps of a triangle mesh by z-buffer rasterisation in numpy: per pixel, the distance along the ray through the
-pixel centre to the nearest triangle, as ray casting (:mod:`pipeline.render.raycast`) gives it, several times faster for
-meshes of many small triangles. Scanline spans, all triangles at once: per triangle and pixel row the span between
-its edges at the row's centre line, then every pixel centre in the span, its depth from the triangle's plane."""
+"""The test reference of the mesh ray-caster's depth maps (:meth:`pipeline.render.raycast.MeshCaster.depth_map`):
+z-buffer rasterisation in numpy, an independent construction of the same quantity — per pixel, the distance along
+the ray through the pixel centre to the nearest triangle. Scanline spans, all triangles at once: per triangle and
+pixel row the span between its edges at the row's centre line, then every pixel centre in the span, its depth
+from the triangle's plane."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 
 NEAR = 1e-6
 """Triangles with a corner this close to the camera plane (or behind it, with another in front) are not rasterised:
-:func:`ray_depth_map` gives up and the caller ray-casts."""
+:func:`ray_depth_map` declines (returns None)."""
 
 
 def ray_depth_map(verts: np.ndarray, faces: np.ndarray, K: np.ndarray, R: np.ndarray, center: np.ndarray,
