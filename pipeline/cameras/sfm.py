@@ -110,7 +110,7 @@ def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera
 
 
 def match_features(db: Path, n_images: int, rung: Rung, matching: str, seed: int, threads: int = -1) -> None:
-    """Match and verify; ``seed``: the verification's RANSAC seed (with -1, guided DSP-SIFT matches were verified
+    """Match and verify; ``seed``: the verification's RANSAC seed (with -1, COLMAP verifies guided DSP-SIFT matches
     differently on every run)."""
     from pipeline.colmaplib import pycolmap
 
@@ -208,8 +208,7 @@ def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, came
     log = work / f"{rung.name}.log"
     with open(log, "w") as f:
         p = subprocess.run([sys.executable, "-m", "pipeline.cameras.sfm", json.dumps(args)], stdout=f,
-        stderr=subprocess.STDOUT,
-                           cwd=Path(__file__).resolve().parents[1])
+                           stderr=subprocess.STDOUT, cwd=Path(__file__).resolve().parents[2])
     res = work / rung.name / "result.json"
     if p.returncode != 0 or not res.exists():
         why = f"signal {-p.returncode}" if p.returncode < 0 else f"exit code {p.returncode}"
@@ -298,7 +297,7 @@ def retriangulate(rec, database: Path, images: Path, work: Path, seed: int = 0, 
     """The points of ``rec`` triangulated afresh from every match in ``database`` at its poses and intrinsics (COLMAP's
     point triangulator: poses and cameras stay as they are). After the final passes: they drop the observations
     above the error threshold to fit the poses, and with them a quarter to half of the sparse depths on the object
-    (the cow 212 → 110, the book 7768 → 5879), which the depth loss needs; at the adjusted poses most of those
+    (the cow keeps 110 of 212, the book 5879 of 7768), which the depth loss needs; at the adjusted poses most of those
     observations fit again. Returns (model, note)."""
     from pipeline.colmaplib import pycolmap
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from pipeline.workspace import Done, Job, Workspace
 
-VIEWER_JS = Path(__file__).resolve().parents[1] / "node_modules" / "@google" / "model-viewer" / "dist" / \
+VIEWER_JS = Path(__file__).resolve().parents[2] / "node_modules" / "@google" / "model-viewer" / "dist" / \
     "model-viewer.min.js"
 
 
@@ -162,7 +162,7 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
         footprint = (ws.stamp("masks") or {}).get("footprint")
         if footprint is not None:
             points = "its sparse points on the plane, widened"
-            # True: a stamp of stop 25, when sparse points were the only source
+            # True: an older workspace's stamp, from a masks stage whose only source was the sparse points
             source = {"sparse points": points, True: points,
                       "masks' hull": "the visual hull of the first masks: too few sparse points on the object",
                       "sparse points and masks' hull": f"{points}, united with the visual hull of the first masks"}
