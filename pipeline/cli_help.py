@@ -51,7 +51,9 @@ def _metavar(value, hint=None) -> str:
         return type(value).__name__.upper()
     if isinstance(value, tuple):
         return "INT ..."
-    return "PATH" if isinstance(value, Path) or value is None else "TEXT"
+    if value is None:  # Optional: name it by what it holds
+        return "PATH" if Path in typing.get_args(hint) else "TEXT"
+    return "PATH" if isinstance(value, Path) else "TEXT"
 
 
 def _line(spelling: str, text: str) -> str:

@@ -9,9 +9,9 @@ from dvr.options import PositiveInt
 
 @dataclass
 class DepthConfig:
-    """Sparse depth from SfM tracks (stage ``depth``)."""
+    """Sparse depth maps from the SfM points (stage depth)."""
 
     min_track_length: PositiveInt = 3
     """Keep points observed in at least this many images."""
     max_reprojection_error: float = 1.5
-    """Keep points whose mean reprojection error (px, SfM resolution) is at most this."""
+    """Keep points whose mean reprojection error is at most this (px, at the SfM resolution)."""
