@@ -74,7 +74,7 @@ bench-core: setup
 	$(PY) bench/core.py
 
 bench: setup
-	$(PY) bench/run.py --readme
+	$(PY) bench/run.py --docs
 
 bench-quick: setup
 	$(PY) bench/run.py --quick

@@ -161,10 +161,19 @@ def render_psnrs(tm, tex, K, R, centre, photo: np.ndarray, mask: np.ndarray) -> 
     return image_psnr(img, hit, photo, mask), image_psnr(img, hit, photo, mask, gain_fit=True)
 
 
+def reaimed_psnr(caster, K: np.ndarray, R: np.ndarray, centre: np.ndarray, photo: np.ndarray,
+                 mask: np.ndarray) -> tuple[float, float]:
+    """(PSNR, degrees turned): :func:`bench.reaim.reaim`'s render against ``photo`` over ``mask`` ∪ the mesh's pixels
+    (as :func:`image_psnr`)."""
+    from bench.reaim import degrees_turned, reaim
+
+    Rd, img, hit = reaim(caster, K, R, centre, photo, mask)
+    return image_psnr(img, hit, photo, mask), degrees_turned(Rd)
+
+
 def reaimed_psnrs(tm, tex, views: list[tuple]) -> dict:
     """The held-out figure with each view re-aimed (:mod:`bench.reaim`): mean PSNR and mean degrees turned over
     ``views`` = (K, R, centre, photo path, mask path)."""
-    from bench.reaim import reaimed_psnr
     from pipeline.render.textured import TexturedCaster
 
     caster = TexturedCaster(tm.vertices, tm.faces, tm.visual.uv, tex)
@@ -435,7 +444,6 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     subset_workspace(full, ws, [i for i in range(len(names)) if i not in held])
     train_mesh_texture(ws, spec["preset"], options)
     tm, tex = textured(ws)
-    from bench.reaim import reaimed_psnr
     from dvr.metrics import masked_psnr
     from pipeline.render.textured import TexturedCaster, render_textured
 

@@ -155,9 +155,9 @@ def share(out: Path, at_once: list[int]) -> None:
 
 def graph(out: Path, repeats: int = 50) -> None:
     """The cow's default training field after 200 steps, one step's rays (default batch and samples): the surface
-    finding eagerly (``find_surface``, the trainer's before stop 45 and its way on CPU), with fixed shapes
-    (``find_surface_fixed``) and as the trainer runs it now (``SurfaceFinder``: on CUDA that replayed as one CUDA
-    graph, inputs and outputs copied), ms each and whether they agree."""
+    finding eagerly (``find_surface``, the trainer's way on CPU), with fixed shapes (``find_surface_fixed``) and as
+    the trainer runs it (``SurfaceFinder``: on CUDA replayed as one CUDA graph, inputs and outputs copied), ms each
+    and whether they agree."""
     import time
 
     import torch

@@ -2,8 +2,7 @@
 # The device check, one call on the GPU machine (bench/gpu.py's docstring says what runs where):
 #   here:  python bench/gpu.py prepare gpuw   (gpuw/ and .whl/ ignored through .git/info/exclude; .whl holds the
 #          wheels the GPU image lacks: tyro, docstring_parser, typeguard, trimesh, kornia, kornia_rs for cp312)
-#   there: bash bench/gpu_check.sh            (carry: gpuw, .whl; about 5 minutes, 3.5 at stop 45 without the four
-#          fast-preset captures) → $OUT: logs.tar (the CUDA
+#   there: bash bench/gpu_check.sh            (carry: gpuw, .whl; about 5 minutes) → $OUT: logs.tar (the CUDA
 #          tests', the graph's and the profile's logs, gpu.json, graph.json) and the trained models of the cow and
 #          DTU runs (tars; the quality cow's split in 15 MB parts, as a file comes back up to 16 MiB)
 #   here:  cat the parts, unpack the tars into gpuw/, then python bench/gpu.py evaluate gpuw

@@ -9,10 +9,10 @@ camera centre (3 numbers, at most :data:`MAX_TURN_PX`), which moves the picture 
 almost as a shift of the camera centre does. Turning a camera about its centre maps its image by the homography
 K·Rd·K⁻¹, so :func:`fit_rotation` fits the turn on the warped render at the SfM pose (no second render), and
 :func:`reaim` finishes on fresh renders against the figure the PSNR takes: the result is never worse than no turn.
+:func:`bench.evaluate.reaimed_psnr` gives the re-aimed figure of every bench row; ``python bench/figures.py reaim``
+draws one view.
 """
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 
@@ -128,61 +128,3 @@ def reaim(caster, K: np.ndarray, R: np.ndarray, centre: np.ndarray, photo: np.nd
                     if (tried := (theta, *error(theta)))[1] < best[1]:
                         best, better = tried, True
     return _turn(best[0], focal), best[2], best[3]
-
-
-def reaimed_psnr(caster, K: np.ndarray, R: np.ndarray, centre: np.ndarray, photo: np.ndarray,
-                 mask: np.ndarray) -> tuple[float, float]:
-    """(PSNR, degrees turned): :func:`reaim`'s render against ``photo`` over ``mask`` ∪ the mesh's pixels (as
-    :func:`bench.evaluate.image_psnr`)."""
-    from bench.evaluate import image_psnr
-
-    Rd, img, hit = reaim(caster, K, R, centre, photo, mask)
-    return image_psnr(img, hit, photo, mask), degrees_turned(Rd)
-
-
-def picture(arm: Path, scene: str, view: int, out: Path) -> None:
-    """One held-out photo of a ``bench/pair.py`` arm (``arm``: its work folder, with all/ and ws/): the photo, the
-    textured mesh at SfM's pose of it and re-aimed, and each render's error against the photo (|difference| × 4),
-    cropped to the object; the PSNRs printed."""
-    import cv2
-
-    from bench import evaluate as ev
-    from dvr.cameras import load_cameras
-    from dvr.data import list_images
-    from pipeline.render.textured import TexturedCaster
-
-    syn = ev.scene(scene, {})
-    tm, tex = ev.textured(arm / "ws")
-    est, names = load_cameras(arm / "all" / "cameras.npz"), [p.stem for p in list_images(arm / "all" / "images")]
-    path = sorted((syn / "gt" / "heldout" / "images").glob("*.png"))[view]
-    photo, mask = ev._read_rgb(path), ev._read_mask(syn / "gt" / "heldout" / "masks" / path.name)
-    k = names.index(f"{ev.HELDOUT}{path.stem}")
-    caster = TexturedCaster(tm.vertices, tm.faces, tm.visual.uv, tex)
-    h, w = photo.shape[:2]
-    at_sfm = caster.render(est.K[k], est.R[k], est.sfm_centers[k], w, h)
-    Rd, *aimed = reaim(caster, est.K[k], est.R[k], est.sfm_centers[k], photo, mask)
-    tiles = [photo]
-    for name, (img, hit) in (("SfM's pose", at_sfm), ("re-aimed", aimed)):
-        print(f"{path.name} {name}: {ev.image_psnr(img, hit, photo, mask):.2f} dB")
-        tiles.append(img)
-    for img, hit in (at_sfm, aimed):
-        tiles.append(np.clip(4 * np.abs(img - photo) * (mask | hit)[..., None], 0, 1))
-    ys, xs = np.nonzero(mask | at_sfm[1])
-    y0, y1, x0, x1 = max(0, ys.min() - 8), min(h, ys.max() + 9), max(0, xs.min() - 8), min(w, xs.max() + 9)
-    row = np.concatenate([t[y0:y1, x0:x1] for t in tiles], 1)
-    cv2.imwrite(str(out), (row * 255).round().astype(np.uint8)[..., ::-1])
-    print(f"picture: {out} (re-aimed by {degrees_turned(Rd):.3f}°)")
-
-
-if __name__ == "__main__":
-    import argparse
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    ap = argparse.ArgumentParser(description="photo | mesh at SfM's pose | re-aimed | their errors, one held-out view")
-    ap.add_argument("arm", type=Path, help="a bench/pair.py arm's work folder (bench/runs/pairs/<scene>/work/<k>)")
-    ap.add_argument("scene")
-    ap.add_argument("--view", type=int, default=0)
-    ap.add_argument("--out", type=Path, required=True)
-    a = ap.parse_args()
-    picture(a.arm, a.scene, a.view, a.out)

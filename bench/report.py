@@ -1,15 +1,15 @@
-"""The benchmark's outputs: the README tables (reconstruction, cameras), the accuracy-against-time plot and the
-findings (what each knob costs and buys, the Pareto fronts)."""
+"""The benchmark's outputs: the tables of docs/benchmarks.md (reconstruction, cameras), the accuracy-against-time
+plot and the findings (what each knob costs and buys, the Pareto fronts)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 # The versions of the pipeline's defaults a reconstruction row can have trained with (run.py stamps each row it runs
-# with the latest; a row without a stamp is version 1, up to stop 51), each with the change that made it; rows of an
-# older version are marked † in the table and in the findings until they are run again.
-DEFAULTS_CHANGES = {2: "stop 52: `train.carve_min_views` 1 → 2, the hull and its carving term need two masks",
-                    3: "stop 53: `train.carve_sparse_views` 5, one mask carves where fewer than 5 views see a point"}
+# with the latest; a row without a stamp is version 1), each with the default it adds; rows of an older version are
+# marked † in the table and in the findings until they are run again.
+DEFAULTS_CHANGES = {2: "`train.carve_min_views` 2, the hull and its carving term need two masks",
+                    3: "`train.carve_sparse_views` 5, one mask carves where fewer than 5 views see a point"}
 DEFAULTS_VERSION = max(DEFAULTS_CHANGES)
 STALE_NOTE = (f"† trained with older defaults, before version {DEFAULTS_VERSION} "
               f"({DEFAULTS_CHANGES[DEFAULTS_VERSION]}); not comparable with rows without †, to be run again.")
@@ -177,7 +177,7 @@ def findings(results: list[dict]) -> list[str]:
                 dp = r["psnr"] - base["psnr"]
                 rates.append((label(r) + stale(r, base), dt, dc, dp))
         for name, dt, dc, dp in sorted(rates, key=lambda x: x[1]):
-            out.append(f"- {name}: {dt:+.0f} s → Chamfer {-dc:+.3f} points, PSNR {dp:+.2f} dB")
+            out.append(f"- {name}: {dt:+.0f} s, Chamfer {-dc:+.3f} points, PSNR {dp:+.2f} dB")
         dearer = [x for x in rates if x[1] > 5 and x[3] > 0]
         if dearer:
             name, dt, dc, dp = max(dearer, key=lambda x: x[3] / x[1])
@@ -219,16 +219,16 @@ def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
               (appearance, "the plain cow (one exposure, no highlights)", cow(None, "default"),
                cow("appearance", "default")),
               (appearance, "DTU scan24", by.get(("default", "dtu", "sfm", "appearance off"),
-                                                base.get(("default", "dtu", "sfm"))),  # before stop 46: off
+                                                base.get(("default", "dtu", "sfm"))),  # else the default's row
                by.get(("default", "dtu", "sfm", "appearance"))),
-              ("per-view appearance, auto (the default since stop 46)",
+              ("per-view appearance, auto (the default)",
                "the cow photographed with exposure ±25 % and white balance ±8 %, from photos",
                by.get(("default", "cow", "sfm", "exposure, appearance off")),
                by.get(("default", "cow", "sfm", "exposure"))),
-              ("per-view appearance, auto (the default since stop 46)", looks + ", from photos",
+              ("per-view appearance, auto (the default)", looks + ", from photos",
                by.get(("default", "cow", "sfm", "exposure+specular, appearance off")),
                by.get(("default", "cow", "sfm", "exposure+specular"))),
-              ("the exposure measured and used (masks' stereo on evened photos, appearance auto; stop 46)",
+              ("the exposure measured and used (masks' stereo on evened photos, appearance auto)",
                looks + ", from photos, against neither",
                by.get(("default", "cow", "sfm", "exposure+specular, no exposure handling")),
                by.get(("default", "cow", "sfm", "exposure+specular")))]
@@ -252,7 +252,7 @@ def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
               for what, scene, p in (("the cow", "cow", "default"), ("the cow", "cow", "balanced"),
                                      ("the jar", "jar", "default"), ("the book", "book", "default"),
                                      ("the floating cow", "cow_float", "default"), ("DTU scan24", "dtu", "default"))]
-    framing = "the framing rule (`train.framing` auto, stop 57: on where the object leaves most frames)"
+    framing = "the framing rule (`train.framing` auto: on where the object leaves most frames)"
     pairs += [(framing, f"the cow photographed close up (cameras at 1.6 instead of 2.6 from it), {what}",
                by.get(("default", "cow", c, "close-up photos, framing off")), by.get(("default", "cow", c,
                                                                                       "close-up photos")))
@@ -261,20 +261,20 @@ def ablation_findings(rows: list[dict], all_results: list[dict]) -> list[str]:
     for name, what, off, on in pairs:
         if off is None or on is None:
             continue
-        line = (f"- {name}, {what}{stale(off, on)}: held-out PSNR {off['psnr']:.2f} → {on['psnr']:.2f} dB "
-                f"({on['psnr'] - off['psnr']:+.2f}")
+        line = (f"- {name}, {what}{stale(off, on)}, without / with it: held-out PSNR {off['psnr']:.2f} / "
+                f"{on['psnr']:.2f} dB ({on['psnr'] - off['psnr']:+.2f}")
         if "psnr_gain_fit" in off and "psnr_gain_fit" in on:
-            line += (f"; after fitting each held-out photo's own colour gains {off['psnr_gain_fit']:.2f} → "
+            line += (f"; after fitting each held-out photo's own colour gains {off['psnr_gain_fit']:.2f} / "
                      f"{on['psnr_gain_fit']:.2f} dB")
         if name == final:
             at, key = ("the held-out photos' GT poses", "psnr_gt_pose") if "psnr_gt_pose" in off else \
                 ("the training views", "psnr_train")
-            line += (f"; rotation error {off['pose']['rot_err_deg_mean']:.3f} → {on['pose']['rot_err_deg_mean']:.3f}°"
-                     f", at {at} {off[key]:.2f} → {on[key]:.2f} dB")
+            line += (f"; rotation error {off['pose']['rot_err_deg_mean']:.3f} / {on['pose']['rot_err_deg_mean']:.3f}°"
+                     f", at {at} {off[key]:.2f} / {on[key]:.2f} dB")
         line += ")"
         if off.get("chamfer_rel") is not None:
-            line += f", Chamfer {100 * off['chamfer_rel']:.3f} → {100 * on['chamfer_rel']:.3f} %"
-        out.append(line + f", {off['total_s']:.0f} → {on['total_s']:.0f} s")
+            line += f", Chamfer {100 * off['chamfer_rel']:.3f} / {100 * on['chamfer_rel']:.3f} %"
+        out.append(line + f", {off['total_s']:.0f} / {on['total_s']:.0f} s")
     return out + appearance_reference(by)
 
 
@@ -298,17 +298,18 @@ def appearance_reference(by: dict) -> list[str]:
     return [line]
 
 
-def write(results: list[dict], mach: dict, total: float, stem: Path, readme: Path | None) -> None:
-    """Plot, tables and findings; printed, and (with ``readme``) written between its BENCH markers."""
+def write(results: list[dict], mach: dict, total: float, stem: Path, page: Path | None) -> None:
+    """Plot, tables and findings; printed, and (with ``page``, docs/benchmarks.md) written between its BENCH
+    markers."""
     plot(results, stem.with_suffix(".png"), mach)
     md, cams, notes = table(results, mach), cameras_table(results), findings(results)
     print(md)
     print(cams)
     print("\n".join(notes))
     print(f"bench: {len(results)} runs in {total / 60:.1f} min → {stem}.json, .png")
-    if readme is None:
+    if page is None:
         return
-    txt = readme.read_text()
+    txt = page.read_text()
     start, end = "<!-- BENCH START -->", "<!-- BENCH END -->"
     if start in txt and end in txt:
         pre, rest = txt.split(start, 1)
@@ -317,5 +318,5 @@ def write(results: list[dict], mach: dict, total: float, stem: Path, readme: Pat
                                f"against the GT cameras):\n\n{cams}\n\n" if cams else "") +
                 f"Whole benchmark: {total / 60:.0f} min (`make bench`). Each knob against the default preset (cow on "
                 f"the floor, GT cameras), and the Pareto fronts:\n\n" + "\n".join(notes) +
-                f"\n\n![accuracy against time](bench/results/{stem.name}.png)\n")
-        readme.write_text(f"{pre}{start}\n{body}{end}{post}")
+                f"\n\n![accuracy against time](../bench/results/{stem.name}.png)\n")
+        page.write_text(f"{pre}{start}\n{body}{end}{post}")

@@ -2,8 +2,8 @@
 on the real DTU scan24 photos; and the cameras stage on a matrix of capture conditions.
 
     python bench/run.py --quick      # ≤ 10 min on 2 cores: fast + default on the cow on its floor, GT cameras
-    python bench/run.py --readme     # the full set (≈ 100 min on 2 cores), tables + plot into README.md
-    python bench/run.py --photos --update bench/results/<full>.json --readme   # only the rows that run SfM
+    python bench/run.py --docs       # the full set (≈ 3 h on 2 cores), tables + plot into docs/benchmarks.md
+    python bench/run.py --photos --update bench/results/<full>.json --docs   # only the rows that run SfM
 
 The main synthetic scenes stand on a surface, as real objects do: the textured cow on a wooden floor, a weakly
 textured jar on a blocky floor, a flat book on a stone-like table top (and, default preset only, a plain stool
@@ -52,7 +52,7 @@ KNOBS = {
     "texture=1024": (["--texture.size", "1024"], {}),
 }
 # ablation (cow on the floor, GT cameras, default preset): the same scene photographed with per-view exposure and
-# white balance and with specular highlights, trained without and with the per-view appearance (issue 11)
+# white balance and with specular highlights, trained without and with the per-view appearance
 EXPOSURE = {"kind": "exposure", "amount": 0.25, "white_balance": 0.08}
 LOOKS = [EXPOSURE, {"kind": "specular", "amount": 0.25, "shininess": 30.0}]
 ABLATIONS = {
@@ -66,12 +66,12 @@ ABLATIONS = {
     "exposure": ([], {"effects_add": [EXPOSURE]}),  # what the per-view appearance is for, without highlights
     "exposure, appearance": (["--train.appearance", "on"], {"effects_add": [EXPOSURE]}),
     "appearance": (["--train.appearance", "on"], {}),  # the plain cow (nothing to fix) and DTU
-    # since stop 46 the default is "auto": on where the cameras stage measures the photos' exposure differing (DTU, the
-    # exposure cow from photos), off without SfM points (every GT-camera row)
+    # the default is "auto": on where the cameras stage measures the photos' exposure differing (DTU, the exposure cow
+    # from photos), off without SfM points (every GT-camera row)
     "appearance off": (["--train.appearance", "off"], {}),
     "exposure, appearance off": (["--train.appearance", "off"], {"effects_add": [EXPOSURE]}),
     "exposure+specular, appearance off": (["--train.appearance", "off"], {"effects_add": LOOKS}),
-    # from photos, nothing of stop 46's: the masks' stereo on the photos as taken, no per-view appearance
+    # from photos, no exposure handling at all: the masks' stereo on the photos as taken, no per-view appearance
     "exposure+specular, no exposure handling": (["--masks.no-even-exposure", "--train.appearance", "off"],
                                                 {"effects_add": LOOKS}),
     "view shading": (["--train.view-shading"], {}),
@@ -90,7 +90,7 @@ ABLATIONS = {
     # them as they are, the other stages on them shrunk; lossless, and as JPEGs
     "photos 3× larger": ([], {"cameras": {"photo_scale": 3}}),
     "photos 3× larger as JPEG": ([], {"cameras": {"photo_scale": 3}, "photos_jpeg": 92}),
-    # close-up photos (stop 57): the cameras at 1.6 instead of 2.6 from the cow, which leaves most frames; the
+    # close-up photos: the cameras at 1.6 instead of 2.6 from the cow, which leaves most frames; the
     # working sphere's space above and around it is framed by only a few photos (train.framing auto: on here)
     "close-up photos": ([], {"cameras": {"radius": 1.6}}),
     "close-up photos, framing off": (["--train.framing", "off"], {"cameras": {"radius": 1.6}}),
@@ -159,7 +159,7 @@ def plan(quick: bool) -> list[dict]:
     out += [{"scene": "cow", "cameras": "sfm", "preset": "default", "knob": "view selection", "ablation": True}]
     out += [{"scene": "dtu", "cameras": "sfm", "preset": "default", "knob": k, "ablation": True}
             for k in ("appearance off", "appearance", "view selection", "appearance + view shading")]
-    # the exposure cow from photos (stop 46): the default (masks on evened photos, appearance auto: on), with the
+    # the exposure cow from photos: the default (masks on evened photos, appearance auto: on), with the
     # appearance off, and the glossy cow also with neither
     out += [{"scene": "cow", "cameras": "sfm", "preset": "default", "knob": k, "ablation": True}
             for k in ("exposure", "exposure, appearance off", "exposure+specular", "exposure+specular, appearance off",
@@ -173,8 +173,8 @@ def plan(quick: bool) -> list[dict]:
             for c in ("gt", "sfm") for k in ("close-up photos", "close-up photos, framing off")]
     out += [{"scene": "mug", "cameras": c, "preset": "default", "knob": "photo hull", "ablation": True}
             for c in ("gt", "sfm")]
-    # the captures from photos where the photo hull carved (stop 40, before it read colours outward) or carves
-    # something besides the mug (bench/carves.py --photos, and DTU)
+    # the photo hull beyond the mug: two captures from photos whose automatic masks miss bits of the object (read at
+    # the hull's surface alone, the views' colours disagree there), and DTU, where it carves a slab under a roof
     out += [{"scene": s, "cameras": "sfm", "preset": "default", "knob": "photo hull", "ablation": True}
             for s in ("cow_float", "jar_alike", "dtu")]
     out += [{"kind": "cameras", "condition": c, "scene": CONDITIONS[c][0]} for c in CONDITIONS]
@@ -209,8 +209,8 @@ def run_child(spec: dict) -> None:
 
 def stale_dtu_stages(specs: list[dict]) -> list[Path]:
     """DTU's cameras, masks and depth cached by earlier runs (``bench/runs/dtu_all*``, which
-    :func:`bench.evaluate.run_dtu` makes only when missing): a bench that runs DTU rows afresh makes them again with
-    today's code (stop 37's re-run kept masks from before a change to the masks stage)."""
+    :func:`bench.evaluate.run_dtu` makes only when missing): a bench that runs DTU rows afresh makes them again, so
+    that a change to those stages reaches DTU's rows too."""
     if not any(s.get("scene") == "dtu" for s in specs):
         return []
     return sorted(p for p in RUNS.glob("dtu_all*") if p.is_dir())
@@ -297,7 +297,8 @@ def stale_specs(specs: list[dict], path: Path) -> list[dict]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fast + default on the cow with GT cameras (≤ 10 min)")
-    ap.add_argument("--readme", action="store_true", help="write the tables and plot into README.md")
+    ap.add_argument("--docs", "--readme", dest="docs", action="store_true",
+                    help="write the tables and plot into docs/benchmarks.md (between its BENCH markers)")
     ap.add_argument("--only", type=str, default=None,
                     help="run only the specs whose scene, knob or cameras-table condition contains this (or one of "
                          "these, comma-separated)")
@@ -312,17 +313,17 @@ def main() -> None:
                     help="with --update: only the rows that its JSON holds from older defaults (marked †)")
     ap.add_argument("--update", type=Path, default=None,
                     help="a full bench's results JSON: rerun the selected rows and replace them there (the others "
-                         "kept as they are); tables, plot and README (with --readme) from the merged set")
+                         "kept as they are); tables, plot and docs/benchmarks.md (with --docs) from the merged set")
     ap.add_argument("--from", dest="from_json", type=Path, default=None,
-                    help="redo the tables, plot and README section from a results JSON (no runs)")
+                    help="redo the tables, plot and docs/benchmarks.md section from a results JSON (no runs)")
     ap.add_argument("--resume", action="store_true",
                     help="reuse runs already finished by an interrupted bench (bench/runs/done/)")
     ap.add_argument("--one", type=str, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
-    readme = ROOT / "README.md" if a.readme else None
+    page = ROOT / "docs" / "benchmarks.md" if a.docs else None
     if a.from_json:
         rec = json.loads(a.from_json.read_text())
-        write(rec["results"], rec["machine"], rec["bench_seconds"], a.from_json.with_suffix(""), readme)
+        write(rec["results"], rec["machine"], rec["bench_seconds"], a.from_json.with_suffix(""), page)
         return
     if a.one:
         run_child(json.loads(a.one))
@@ -343,7 +344,7 @@ def main() -> None:
     total = sum(r.get("wall_s", 0.0) for r in results)  # the runs' own time, also when resumed
     stem.with_suffix(".json").write_text(json.dumps({"machine": mach, "bench_seconds": round(total, 1),
                                                      "results": results}, indent=1))
-    write(results, mach, total, stem, readme)
+    write(results, mach, total, stem, page)
 
 
 if __name__ == "__main__":

@@ -36,6 +36,6 @@ def test_table_has_no_note_when_every_row_is_current():
 def test_a_finding_with_one_side_of_older_defaults_is_marked():
     base, knob = _row(defaults=DEFAULTS_VERSION), _row("final adjustment", psnr=26.0)
     marked = ablation_findings([knob], [base, knob])
-    assert len(marked) == 1 and "from photos †:" in marked[0]
+    assert len(marked) == 1 and "from photos †, without / with it:" in marked[0]
     fresh = ablation_findings([{**knob, "defaults": DEFAULTS_VERSION}], [base, {**knob, "defaults": DEFAULTS_VERSION}])
     assert len(fresh) == 1 and "†" not in fresh[0]

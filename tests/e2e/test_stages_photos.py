@@ -321,7 +321,7 @@ def test_normalization_ignores_background_points():
 
 def test_reconstruct_names_a_missing_user_mask_before_sfm(photo_ws, tmp_path, capsys):
     """``reconstruct --masks-dir`` with a photo whose mask is missing stops at once with the masks stage's one line,
-    before the cameras stage (it said so only after SfM: on DTU 17 s later), and writes nothing."""
+    before the cameras stage (not after SfM: on DTU 17 s later), and writes nothing."""
     syn, _ = photo_ws
     (tmp_path / "m").mkdir()
     for i in range(1, N_VIEWS):  # 000000's mask missing
@@ -349,11 +349,11 @@ def test_user_masks_validated(photo_ws, tmp_path, capsys):
     assert "neither black nor white" in capsys.readouterr().err
     ones = (cv2.imread(str(syn / "gt" / "masks" / "000003.png"), 0) > 127).astype(np.uint8)  # numpy's 0/1 mask
     cv2.imwrite(str(tmp_path / "m" / "000003.png"), ones)
-    assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2  # was: every pixel background
+    assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2  # not: every pixel background
     assert "000003.png: mask of 0 and 1; save the object as 255" in capsys.readouterr().err
     shutil.copy(syn / "gt" / "masks" / "000003.png", tmp_path / "m" / "000003.png")
     cv2.imwrite(str(tmp_path / "m" / "000003.jpg"), ones * 255)  # a second mask of the same photo
-    assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2  # was: whichever came last
+    assert main(["masks", str(ws), "--masks-dir", str(tmp_path / "m")]) == 2  # not: whichever comes last
     assert "000003.jpg and 000003.png are masks of one photo" in capsys.readouterr().err
     (tmp_path / "m" / "000003.jpg").unlink()
     (tmp_path / "m" / "000003.json").write_text("{}")  # a labelme file beside its mask is not a mask
@@ -518,11 +518,11 @@ def test_the_same_photos_give_the_same_cameras(photo_ws, tmp_path):
 
 
 def test_a_saved_mapping_gives_the_cameras_of_the_run_that_mapped_it(photo_ws, tmp_path, monkeypatch):
-    """``bench/pair.py``'s stand-in for the SfM ladder (:func:`pipeline.cameras.mapping.map_photos`) returns a
+    """The benchmark's stand-in for the SfM ladder (:func:`pipeline.cameras.mapping.map_photos`) returns a
     workspace's saved model; the rest of the cameras stage (:func:`pipeline.cameras.mapping.finish_model`, the frame,
     the support plane) then gives that workspace's cameras again, without mapping, and the final passes change them."""
     import pipeline.cameras.mapping as mapping
-    from bench.pair import from_mapping
+    from bench.arms import from_mapping
 
     def no_mapping(*args):
         raise AssertionError("mapped again")
@@ -553,7 +553,7 @@ def test_a_model_from_a_later_rung_gets_the_final_passes(photo_ws, tmp_path, mon
     import trimesh
 
     import pipeline.cameras.mapping as mapping
-    from bench.pair import from_mapping
+    from bench.arms import from_mapping
     from dvr.cameras import to_normalized
     from dvr.data import list_images
     from pipeline.cameras.export import SPHERE_MIN_POINTS, central_points
@@ -604,7 +604,7 @@ def test_a_model_from_a_later_rung_gets_the_final_passes(photo_ws, tmp_path, mon
 
 
 def test_floating_object_has_no_support_plane(photo_ws):
-    """The torus floats in front of its backdrop: no plane carries it, and every stage behaves as before."""
+    """The torus floats in front of its backdrop: no plane carries it, and the cameras stage records none."""
     import json
 
     syn, ws = photo_ws
@@ -632,7 +632,7 @@ def test_given_cameras_survive_a_failed_triangulation(small_ws, tmp_path, monkey
 
 def test_given_cameras_file_checked_entry_by_entry(tmp_path, capsys):
     """A given cameras.npz with a broken entry stops the cameras stage with one line naming the file and the entry
-    (was: decompose_projection's message without either, or a KeyError traceback for a gap in the indices)."""
+    (not decompose_projection's message without either, or a KeyError traceback for a gap in the indices)."""
     photos = tmp_path / "photos"
     photos.mkdir()
     rng = np.random.default_rng(0)

@@ -106,7 +106,7 @@ def test_bad_scene(tmp_path):
 
 
 def test_bad_scene_file_is_one_line_naming_it(tmp_path):
-    """A scene file's YAML error was PyYAML's five lines; an unknown key did not name the file."""
+    """A scene file's YAML error is one line naming the file (not PyYAML's five lines), and so is an unknown key."""
     broken, unknown = tmp_path / "broken.yaml", tmp_path / "unknown.yaml"
     broken.write_text("shape: {kind: torus\n")
     unknown.write_text("shape: {kind: torus, radios: 1}\n")
@@ -274,3 +274,23 @@ def test_ground_patterns_and_soft_contact_shadow():
     assert s[0] < s[1] < s[2]  # darker towards the contact point
     assert s[3] < s[2] - 0.3  # inside the cast shadow
     assert s[2] == pytest.approx(0.4 + 0.8 / np.sqrt(2), abs=1e-3)  # far away: ambient + cos · intensity
+
+
+def test_the_stool_scene_mesh_is_one_closed_solid():
+    """configs/scenes/meshes/stool.obj is what its generator (stool.py beside it) writes: one closed solid, a seat on
+    four legs, with the volume and area of its boxes."""
+    from configs.scenes.meshes.stool import LEGS, SEAT, boxes_surface
+
+    mesh = trimesh.load(ROOT / "configs" / "scenes" / "meshes" / "stool.obj")
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.body_count == 1
+    seat_w, seat_d, seat_h = (hi - lo for lo, hi in SEAT)
+    leg_w, leg_d, leg_h = (hi - lo for lo, hi in LEGS[0])
+    assert mesh.volume == pytest.approx(seat_w * seat_d * seat_h + 4 * leg_w * leg_d * leg_h)
+
+    def box_area(w, d, h):
+        return 2 * (w * d + w * h + d * h)
+
+    boxes = box_area(seat_w, seat_d, seat_h) + 4 * box_area(leg_w, leg_d, leg_h)
+    assert mesh.area == pytest.approx(boxes - 2 * 4 * leg_w * leg_d)  # less the legs' tops and the seat's underside
+    v, f = boxes_surface([SEAT, *LEGS])
+    assert trimesh.Trimesh(v, f).area == pytest.approx(mesh.area)  # the committed file is the generator's

@@ -1,0 +1,74 @@
+"""bench/arms.py: the pair's saved mapping holds no object matches (each arm runs them) and is mapped from the photos
+as the arms get them (JPEGs where the overrides say so); each command reads its own options."""
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+import bench.arms as arms  # noqa: E402
+
+
+def _stubbed(tmp_path, monkeypatch):
+    """The pairs' folders under tmp_path; rendering, photo folders and stages recorded instead of run."""
+    calls = []
+    monkeypatch.setattr(arms, "PAIRS", tmp_path / "pairs")
+    monkeypatch.setattr(arms.ev, "scene", lambda name, over: tmp_path / "scenes" / f"{name}{len(over)}")
+
+    def photos_folder(syn, out, jpeg_quality=None):
+        calls.append(("photos", syn.name, jpeg_quality))
+        return out
+
+    def stages(names, ws, cfg, **sources):
+        calls.append(("stages", names, cfg.cameras.object_matches))
+        (ws / "sfm" / "sparse" / "best").mkdir(parents=True)
+
+    monkeypatch.setattr(arms.ev, "photos_folder", photos_folder)
+    monkeypatch.setattr(arms.ev, "stages", stages)
+    return calls
+
+
+def _stamp(mapping: Path, note):
+    (mapping / ".stages").mkdir(parents=True, exist_ok=True)
+    (mapping / ".stages" / "cameras.json").write_text(json.dumps({"rung": "default", "object_matches": note}))
+
+
+def test_the_mapping_is_made_without_object_matches_from_the_arms_jpegs(tmp_path, monkeypatch):
+    calls = _stubbed(tmp_path, monkeypatch)
+    over = {"cameras": {"photo_scale": 3}, "photos_jpeg": 92}
+    mapping = arms.map_once("cow", over)
+    assert mapping == tmp_path / "pairs" / "cow1-jpeg92" / "mapping"  # the scene rendered without photos_jpeg
+    assert calls == [("photos", "cow1", 92), ("stages", ("cameras",), False)]
+
+
+def test_a_saved_mapping_is_kept_unless_it_holds_the_object_matches(tmp_path, monkeypatch):
+    calls = _stubbed(tmp_path, monkeypatch)
+    mapping = arms.map_once("cow", {})
+    _stamp(mapping, None)
+    assert arms.map_once("cow", {}) == mapping and len(calls) == 2  # kept: nothing mapped again
+    _stamp(mapping, "15 sparse points for the object's sphere ...: 73")  # a mapping that holds them
+    arms.map_once("cow", {})
+    assert calls[2:] == [("photos", "cow0", None), ("stages", ("cameras",), False)]
+
+
+def test_each_command_takes_its_own_options(tmp_path, monkeypatch):
+    """``gt`` and ``dtu`` pass any stage's options on to the run; ``pair`` takes only its own; no command, no run."""
+    runs = []
+    monkeypatch.setattr(arms.ev, "RUNS", tmp_path)
+    monkeypatch.setattr(arms.ev, "run_synthetic", lambda spec, work, knobs: runs.append((spec, knobs)) or {})
+    monkeypatch.setattr(arms.ev, "run_dtu", lambda spec, work, knobs: runs.append((spec, knobs)) or
+                        dict.fromkeys(("psnr", "psnr_train", "psnr_gain_fit", "psnr_train_gain_fit", "psnr_on_model",
+                                       "psnr_reaimed", "reaim_deg", "pose", "seconds", "rung")))
+    arms.main(["gt", "cow", "--preset", "balanced", "--train.seed", "1"])
+    assert runs[-1] == ({"scene": "cow", "cameras": "gt", "preset": "balanced", "knob": "arm"},
+                        {"arm": (["--train.seed", "1"], {})})
+    arms.main(["dtu", "--cameras.seed", "2"])
+    assert runs[-1] == ({"knob": "arm", "preset": "default", "reference_cameras": False},
+                        {"arm": (["--cameras.seed", "2"], {})})
+    for argv in (["pair", "cow", "--train.seed", "1"], ["carves"], []):
+        with pytest.raises(SystemExit):
+            arms.main(argv)
+    assert len(runs) == 2
