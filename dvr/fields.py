@@ -25,7 +25,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from dvr.config import FieldConfig  # moved
+from dvr.config import FieldConfig
 
 SUPPORT_SLOPE = 500.0
 """Logit per unit of depth below the support plane: one grid cell (2/96) below it the logit is −10."""

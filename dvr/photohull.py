@@ -334,7 +334,7 @@ def _depth_scale(P: torch.Tensor) -> torch.Tensor:
 def _reopened(inside: np.ndarray, cand: np.ndarray, cand_spread: torch.Tensor, project_idx,
               silhouettes: torch.Tensor, h: int, w: int) -> np.ndarray:
     """The carved points ``cand`` to put back so that every view's silhouette stays covered: for each pixel the
-    carved lattice no longer covers, of the carved points whose splat covered it the one whose colours agreed
+    carved lattice leaves uncovered, of the carved points whose splat covered it the one whose colours agreed
     best (``cand_spread``)."""
     cov = _coverage(*project_idx(np.argwhere(_surface(inside))), h, w)
     lost = silhouettes & ~cov

@@ -4,7 +4,7 @@ A training step's march and secant are some 300 small kernels; on a GPU their la
 the time (on an H100 a default step's surface finding takes 6.5 ms eagerly and 0.53 ms replayed as one graph,
 ``python bench/gpu.py graph DIR``). On CUDA,
 :class:`SurfaceFinder` captures :func:`dvr.march.find_surface_fixed` once per shape and set of field tensors as one
-CUDA graph and replays it; on CPU it runs :func:`dvr.march.find_surface` as before. Both draw the marching jitter
+CUDA graph and replays it; on CPU it runs :func:`dvr.march.find_surface` eagerly. Both draw the marching jitter
 from the same generator in the same order, so a step finds the same surfaces either way.
 
 A graph reads the field's tensors where they were at capture: the optimizer updates them in place, which it sees;

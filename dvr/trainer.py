@@ -19,7 +19,7 @@ from dvr import losses as L
 from dvr.appearance import ViewAppearance
 from dvr.cameras import in_contact_band, plane_height
 from dvr.checkpoint import atomic_save, atomic_write_text, read_saved, save_model
-from dvr.config import LossWeights, TrainConfig  # moved
+from dvr.config import LossWeights, TrainConfig
 from dvr.data import RaySampler, SceneData
 from dvr.device import resolve_device
 from dvr.fields import finite_difference_normals, make_field

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import StageError  # moved
+from pipeline.errors import StageError
 
 
 class Workspace:
@@ -132,7 +132,7 @@ class Workspace:
             return None
 
     def begin(self, stage: str, outputs: list[Path]) -> Before:
-        """A run of ``stage`` starts: its stamp goes (it is no longer done) and ``<stage>.unfinished`` marks its
+        """A run of ``stage`` starts: its stamp goes (while it runs it is not done) and ``<stage>.unfinished`` marks its
         outputs as not to be read until :meth:`mark_done`. Returns what :meth:`undo_begin` needs."""
         stamp, marker = self._stamp(stage), self._unfinished(stage)
         found = stamp.is_file()

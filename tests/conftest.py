@@ -22,7 +22,7 @@ def pytest_collection_modifyitems(config, items):
     """The files in the order the two workers of ``make test`` take them (``--dist loadfile --no-loadscope-reorder``):
     those with a test marked slow first, in their order, then the others by their number of tests, most first
     (pytest-xdist's own reorder, by the number of tests alone, sends the one-test files last, so the slowest of them,
-    2-3 minutes, ran on one worker after the other had finished)."""
+    2-3 minutes, would run on one worker after the other has finished)."""
     files: dict[str, list] = {}
     for item in items:
         files.setdefault(item.nodeid.split("::")[0], []).append(item)

@@ -26,7 +26,7 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.batch.config import BatchConfig  # moved
+from pipeline.batch.config import BatchConfig
 from pipeline.errors import StageError
 from pipeline.stages import STAGES, check_user_masks, is_up_to_date, run_stage, stage_named
 

@@ -24,7 +24,7 @@ from pipeline.cameras.board_poses import (
     write_board_json,
     write_board_views,
 )
-from pipeline.cameras.config import CamerasConfig  # moved
+from pipeline.cameras.config import CamerasConfig
 from pipeline.cameras.pose_sanity import axes_convergence
 from pipeline.colmaplib import warnings_only
 from pipeline.errors import StageError
@@ -45,7 +45,8 @@ def write_points(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:
 
 SPHERE_MIN_POINTS = 20
 """Fewer central points (:func:`central_points`) than this, and the object's sphere is fitted to every point above
-the support plane instead, which the images' bound then caps (a cliff: the 16-view cow's sphere 1.30 → 2.15)."""
+the support plane instead, which the images' bound then caps (a cliff: the 16-view cow's sphere is 1.30 from
+its central points, 2.15 from every point)."""
 
 
 def central_points(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, support: SupportPlane | None = None

@@ -16,18 +16,18 @@ from dvr.data import list_images
 from pipeline.cameras.board_poses import (
     require_board_cameras,
 )
-from pipeline.cameras.config import CamerasConfig  # moved
-from pipeline.cameras.export import (  # moved
+from pipeline.cameras.config import CamerasConfig
+from pipeline.cameras.export import (
     export_board_cameras,
     export_model,
     report_sfm,
 )
-from pipeline.cameras.mapping import (  # moved
+from pipeline.cameras.mapping import (
     run_sfm,
 )
 from pipeline.errors import StageError
 from pipeline.inputs.photos import (
-    list_photos,  # moved
+    list_photos,
 )
 from pipeline.inputs.video import extract_frames, is_video
 from pipeline.readers import read_stage_model

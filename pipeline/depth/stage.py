@@ -16,7 +16,7 @@ from PIL import Image
 
 from dvr.cameras import Cameras, load_cameras, plane_height, to_normalized
 from dvr.data import list_images
-from pipeline.depth.config import DepthConfig  # moved
+from pipeline.depth.config import DepthConfig
 from pipeline.readers import read_stage_model
 from pipeline.scene.support import GROUND_BAND
 from pipeline.workspace import Done, Job

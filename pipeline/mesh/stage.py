@@ -11,12 +11,12 @@ from dvr.device import resolve_device
 from dvr.extract import extract_mesh
 from dvr.fields import evaluate_in_chunks
 from pipeline.errors import StageError
-from pipeline.mesh.config import MeshConfig  # moved
-from pipeline.mesh.visibility import (  # moved
+from pipeline.mesh.config import MeshConfig
+from pipeline.mesh.visibility import (
     boundary_loops,
     seen_part,
 )
-from pipeline.readers import load_mesh_file, mesh_units, read_model  # moved
+from pipeline.readers import load_mesh_file, mesh_units, read_model
 from pipeline.workspace import Done, Job
 
 

@@ -11,7 +11,7 @@ from dvr.appearance import relative_gains
 from dvr.data import read_rgb
 from pipeline.errors import StageError
 from pipeline.texture.blend import clipped_pixels
-from pipeline.texture.config import TextureConfig  # moved
+from pipeline.texture.config import TextureConfig
 
 
 def read_appearance(path: Path) -> dict:

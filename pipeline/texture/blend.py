@@ -19,7 +19,7 @@ from dvr.cameras import Cameras
 from pipeline.texture.seams import fit_seam_offsets, texel_offsets_planar
 from pipeline.texture.view_select import chart_weights, face_adjacency, select_views
 
-if TYPE_CHECKING:  # texture.py imports this module
+if TYPE_CHECKING:  # for annotations only
     from pipeline.texture.config import TextureConfig
 
 

@@ -86,7 +86,7 @@ def test_sampler_stays_inside_each_views_own_pixels(small_ws, tmp_path):
 
 def test_truncated_sparse_depth_names_its_file(small_ws, tmp_path):
     """A depth/<view>.npz a killed depth stage left truncated (np.savez is not atomic): one ValueError naming it
-    and the fix (was: a zipfile.BadZipFile traceback through the train stage)."""
+    and the fix (not a zipfile.BadZipFile traceback through the train stage)."""
     ws = tmp_path / "ws"
     shutil.copytree(small_ws, ws)
     depth = sorted((ws / "depth").glob("*.npz"))[0]

@@ -94,8 +94,8 @@ def test_extract_mesh_on_device_matches_cpu(device):
 
 
 def test_a_device_that_cannot_be_had_is_a_value_error():
-    """A user's option, one line through the CLI (was torch's RuntimeError listing some thirty device types, and
-    this code's own RuntimeError for CUDA without a GPU: both tracebacks)."""
+    """A user's option, one line through the CLI (not torch's RuntimeError listing some thirty device types,
+    nor a RuntimeError for CUDA without a GPU: both tracebacks)."""
     from dvr.device import resolve_device
 
     with pytest.raises(ValueError, match="'tpu' is not a torch device; use device: auto, cpu or cuda"):

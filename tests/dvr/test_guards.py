@@ -1,5 +1,5 @@
 """Every numerical guard in dvr/ has a test that fails without it. These are the guards that a mutation audit
-(stop 34: each guard removed in turn, the module's tests run) found no test for. Each test gives the input the
+(each guard removed in turn, the module's tests run) found no test for. Each test gives the input the
 guard exists for and checks the result is finite (or the input is refused)."""
 
 import json

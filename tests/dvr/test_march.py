@@ -78,8 +78,8 @@ def test_secant_converges_in_bracket():
 
 
 def test_every_secant_evaluation_narrows_the_root():
-    """The root is the secant of the LAST bracket: until stop 43 it was the point evaluated last, so the last of the
-    ``n_iter`` field evaluations was thrown away (1 round gave the same root as 0). On a sphere the error falls
+    """The root is the secant of the LAST bracket, not the point evaluated last (which would throw the last of the
+    ``n_iter`` field evaluations away: 1 round would give the same root as 0). On a sphere the error falls
     with each round, 100-fold in three."""
     f = sphere()
     o, w = rays(16)

@@ -62,7 +62,7 @@ class _RunsCode:
 
 def test_damaged_saves_are_a_value_error_naming_the_file(small_ws, tmp_path):
     """final.pt or checkpoint.pt cut short (a full disk, a copy), empty, another program's or another version's:
-    a ValueError naming the file (was torch's "failed finding central directory", EOFError, KeyError or TypeError),
+    a ValueError naming the file (not torch's "failed finding central directory", EOFError, KeyError or TypeError),
     and a damaged checkpoint leaves the trainer as it was."""
     cfg = tiny_cfg(iterations=4, checkpoint_every=2)
     data = load_scene(small_ws, torch.device("cpu"))
@@ -101,7 +101,7 @@ def test_losses_are_means_not_sums():
 
 def test_rgb_loss_is_censored_at_over_exposed_channels():
     """A clipped photo channel (≥ clipped_level) only says "at least this bright": a brighter prediction costs
-    nothing and gets no gradient there, a darker one costs as before; unclipped channels are plain L1."""
+    nothing and gets no gradient there, a darker one costs its plain L1; unclipped channels are plain L1."""
     target = torch.tensor([[1.0, 1.0, 0.5], [1.0, 0.3, 0.2]])
     pred = torch.tensor([[1.25, 0.9, 0.6], [1.1, 0.3, 0.2]], requires_grad=True)
     loss = L.rgb_loss(pred, target, clipped_level=0.98)

@@ -168,7 +168,7 @@ def test_phone_folder_on_a_floor_to_textured_mesh(tmp_path):
     assert np.mean(psnr) >= 24.0
     assert "support plane" in (ws / "report.html").read_text()
     # the GLB as a viewer places it (glTF: +Y up): the floor's normal (the scene's +z) is +Y, the object stands on
-    # y = 0 (before stop 30 SfM's frame was the GLB's: up was −Y-ish, the object upside down)
+    # y = 0 (not SfM's frame, whose up is −Y-ish: in it the object would stand upside down)
     scene = trimesh.load(ws / "mesh" / "textured.glb")
     display = scene.graph[scene.graph.nodes_geometry[0]][0]
     assert (display[:3, :3] @ R @ np.array([0.0, 0.0, 1.0]))[1] > np.cos(np.radians(3))

@@ -100,7 +100,7 @@ def _screenshot_shows_model(chromium, page, tmp_path):
 
 def test_report_says_where_the_masks_footprint_came_from(tmp_path):
     """The report's sentence for each value of the masks' ``footprint`` stamp: the source in words ("sparse points",
-    "masks' hull", and a stop-25 stamp's True, when points were the only source), the fallback for False, nothing
+    "masks' hull", and an older workspace's True, from sparse points alone), the fallback for False, nothing
     for None; never the raw value."""
     import json
 
@@ -146,8 +146,8 @@ def test_stage_table_reads_as_words_and_keeps_the_raw_record():
 
 def test_unreadable_training_record_starts_afresh(tmp_path):
     """model/config.json says which config a checkpoint belongs to; left empty or damaged (a killed run, a hand),
-    it is no record: the checkpoint is discarded and training starts afresh (was: json's "Expecting value" as the
-    error, before the --force that would have cleared it)."""
+    it is no record: the checkpoint is discarded and training starts afresh (not json's "Expecting value" as an
+    error that only --force would clear)."""
     import json
 
     from dvr.config import TrainConfig
@@ -170,19 +170,20 @@ def test_report_skips_a_damaged_stamp(tmp_path):
     import json
 
     from pipeline.report.stage import build
+    from pipeline.stages import STAGES
     from pipeline.workspace import Workspace
 
     ws = Workspace(tmp_path)
     ws.stages.mkdir(parents=True)
     (ws.stages / "train.json").write_text("")
     (ws.stages / "cameras.json").write_text(json.dumps({"seconds": 3.0}))
-    page = build(ws)
+    page = build(ws, tuple(st.name for st in STAGES))
     assert "<h1>Reconstruction report" in page and "Stages" in page
 
 
 def test_report_renders_beside_masks_of_another_size(small_ws, tmp_path):
     """images/ redone at another size (cameras --force --cameras.max-side …) leaves masks/ of the old size until
-    the masks stage runs again; the report's renders then score over the mesh's own pixels (was: numpy's "operands
+    the masks stage runs again; the report's renders then score over the mesh's own pixels (not numpy's "operands
     could not be broadcast together")."""
     import cv2
     import numpy as np

@@ -48,8 +48,8 @@ def test_run_stage_skips_when_up_to_date_and_reruns_when_stale_or_forced(tmp_pat
 
 
 def test_a_failing_rerun_removes_the_old_stamp(tmp_path, monkeypatch):
-    """A stage that finished once and then fails when redone, having written part of its outputs, is no longer
-    done: the later stages see it. One that fails before writing anything (bad input) is done as before."""
+    """A stage that finished once and then fails when redone, having written part of its outputs, is not
+    done: the later stages see it. One that fails before writing anything (bad input) stays done."""
     fail = []
 
     def body(job):
@@ -156,8 +156,8 @@ def test_reconstruct_a_synthetic_workspace_then_nothing_to_do(small_ws, tmp_path
 
 def test_damaged_model_files_are_one_line_or_start_afresh(small_ws, tmp_path, capsys):
     """model/final.pt cut short (a full disk, a copy): the mesh and texture stages say so in one line naming it and
-    the fix (was torch's "PytorchStreamReader failed reading zip archive" traceback); a checkpoint cut short holds
-    nothing to lose: training says so and starts afresh (was the same traceback, on every rerun)."""
+    the fix (not torch's "PytorchStreamReader failed reading zip archive" traceback); a checkpoint cut short holds
+    nothing to lose: training says so and starts afresh (not the same traceback on every rerun)."""
     ws = tmp_path / "ws"
     shutil.copytree(small_ws, ws)
     cfg = tiny_training(Config(), iterations=6, batch_rays=256)
@@ -181,9 +181,9 @@ def test_damaged_model_files_are_one_line_or_start_afresh(small_ws, tmp_path, ca
             run_stage(stage, ws, cfg, force=True)
 
 
-def test_a_training_that_cannot_start_loses_the_model_of_before(small_ws, tmp_path):
-    """Another config discards model/ (its checkpoint is not ours to resume); a run of another config that stops
-    before it starts (a mask gone) discarded it too, and the user was left with neither model. A device this machine
+def test_a_training_that_cannot_start_keeps_the_model_it_had(small_ws, tmp_path):
+    """Another config discards model/ (its checkpoint is not ours to resume), but a run of another config that stops
+    before it starts (a mask gone) keeps it: the user is never left with neither model. A device this machine
     lacks stops it before the stage starts, naming the option."""
     ws = tmp_path / "ws"
     shutil.copytree(small_ws, ws)
@@ -202,9 +202,9 @@ def test_a_training_that_cannot_start_loses_the_model_of_before(small_ws, tmp_pa
 
 def test_a_stage_that_did_not_finish_is_not_read_by_the_next(small_ws, tmp_path, monkeypatch):
     """A stage run that fails (or is stopped or killed) after writing part of its outputs leaves older or half
-    written ones: ``texture`` after an interrupted ``mesh`` baked the older clean.ply and, without the mesh stamp,
-    read it in the default frame whatever frame it was written in. Its outputs are now refused, naming the stage to
-    run again, until it finishes. A run that fails before writing anything (bad input found first) leaves the
+    written ones: ``texture`` after an interrupted ``mesh`` would bake the older clean.ply and, without the mesh
+    stamp, read it in the default frame whatever frame it was written in. So its outputs are refused, naming the
+    stage to run again, until it finishes. A run that fails before writing anything (bad input found first) leaves the
     workspace as it was: the stamp back, with its time, and nothing refused."""
     ws = tmp_path / "ws"
     shutil.copytree(small_ws, ws)

@@ -124,7 +124,7 @@ def test_load_errors(tmp_path):
 
 
 def _corrupt_member(path):
-    """The npz at ``path`` with one byte of its first member's data flipped (the zip's CRC no longer matches)."""
+    """The npz at ``path`` with one byte of its first member's data flipped (the zip's CRC check fails)."""
     raw = bytearray(path.read_bytes())
     raw[200] ^= 0xFF
     path.write_bytes(bytes(raw))
@@ -141,7 +141,7 @@ def _corrupt_member(path):
     ("corrupt", "cannot read camera file (BadZipFile)"),
 ])
 def test_load_errors_name_the_file_and_the_entry(tmp_path, arrays, words):
-    """A hand-made or damaged cameras.npz: one ValueError naming the file and the entry. Before, these gave a
+    """A hand-made or damaged cameras.npz: one ValueError naming the file and the entry, not a
     BadZipFile traceback (a member is read lazily, after the guarded np.load), int()'s, numpy's matmul or
     decompose_projection's message without the file."""
     path = tmp_path / "cameras.npz"

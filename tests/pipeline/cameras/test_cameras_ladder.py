@@ -28,7 +28,7 @@ def _centres(c):
 def test_ladder_climbs_where_default_sift_falls_short(tmp_path, capfd):
     """The weakly textured jar on its blocky floor (configs/scenes/jar_floor.yaml) with 24 views of 320×240 30°
     apart: default SIFT registers about half the photos; the ladder climbs until every photo registers, with
-    poses as accurate as the issue asks (camera centres within ~1 % of the orbit radius). COLMAP's info log (the
+    accurate poses (camera centres within ~1 % of the orbit radius). COLMAP's info log (the
     undistortion's line per photo) stays out of the terminal (:mod:`pipeline.colmaplib`)."""
     spec = yaml.safe_load((ROOT / "configs" / "scenes" / "jar_floor.yaml").read_text())
     spec["cameras"].update(n_views=24, rings=2, width=320, height=240, heldout=0)
@@ -60,9 +60,9 @@ def test_symmetric_object_stops_with_a_clear_error_never_wrong_poses(tmp_path, c
     """A checkered sphere: repeated squares match the wrong squares, SfM registers views where they never were;
     no rung gives credible poses, and the stage stops naming the views and the likely cause — on every run: the
     DSP rung's features matched again verify as in the ladder. With RANSAC's default seed (-1) the verification of the
-    guided DSP-SIFT matches came out differently on every run, on one thread too (about 100 of the 276 pairs, 3
-    runs of 3), and the ladder then kept a model of this sphere now and then (a CI run at stop 28, a local run at
-    stop 29). 16 views (24 until stop 34: the whole ladder took 116 s of the suite's 10 minutes, now 46 s)."""
+    guided DSP-SIFT matches comes out differently on every run, on one thread too (about 100 of the 276 pairs, 3
+    runs of 3), and the ladder would keep a model of this sphere now and then. 16 views: the whole ladder takes
+    about 46 s."""
     sc = scene_from_dict({"shape": {"kind": "sphere", "radius": 0.6}, "albedo": {"kind": "checker", "scale": 5.0},
                           "background": {"kind": "backdrop", "radius": 3.5, "saturation": 0.6},
                           "cameras": {"n_views": 16, "width": 320, "height": 240, "radius": 2.6, "fov_deg": 45,

@@ -46,8 +46,9 @@ def test_an_object_on_a_textured_floor_keeps_its_matches_in_large_photos(tmp_pat
     no points (its sphere would come from the floor's). The stage verifies the stored matches again
     (``cameras.object_matches``): several times as many matches on the object, and points on it triangulated at
     the same poses, enough for its sphere. It runs here with the verification at the model's poses (the ``fast``
-    preset's, 0.2 s: 15 → 309 matches, 0 → 54 points); the default's RANSAC verification (240 matches, 50 points)
-    then runs on the same database alone (33 s; the whole stage with it made this test 162 s instead of 105). 12
+    preset's, 0.2 s: 309 matches where COLMAP's kept 15, 54 points where it had none); the default's RANSAC
+    verification (240 matches, 50 points) then runs on the same database alone (33 s; the whole stage with it
+    would make this test 162 s instead of 105). 12
     views 30° apart register 2 on the default rung."""
     spec = yaml.safe_load((ROOT / "configs" / "scenes" / "cow_floor.yaml").read_text())
     spec["cameras"].update(n_views=20, rings=1, elevation=[30, 30], heldout=0, width=320, height=240, photo_scale=3)

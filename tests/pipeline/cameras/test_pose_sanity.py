@@ -133,7 +133,7 @@ def test_shortfalls():
 
 def test_the_seed_reaches_the_geometric_verification(monkeypatch, tmp_path):
     """The seed a rung runs with (``cameras.seed``) is its geometric verification's RANSAC seed too: ``match_features``
-    sets it, and ``_run_rung`` hands its seed on (it was fixed at 0 while the mapper took ``cameras.seed``)."""
+    sets it, and ``_run_rung`` hands its seed on (the mapper's seed, not a fixed 0)."""
     import pycolmap
 
     import pipeline.cameras.sfm as sfm

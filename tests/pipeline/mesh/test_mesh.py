@@ -38,8 +38,8 @@ def test_decimation_reaches_the_budget_after_hole_filling():
 
 
 def test_make_closed_splits_an_edge_shared_by_four_faces():
-    """Two boxes meeting along one edge (what a decimation's edge collapse made on the e2e phone scene: 1 edge of
-    40 k faces shared by 4 faces, so the mesh was not watertight): after _make_closed every edge has 2 faces."""
+    """Two boxes meeting along one edge (what a decimation's edge collapse can make, as on the e2e phone scene: 1 edge
+    of 40 k faces shared by 4 faces, and the mesh is not watertight): after _make_closed every edge has 2 faces."""
     import pymeshlab
 
     from pipeline.mesh.stage import _make_closed
