@@ -152,9 +152,14 @@ def _batch(argv: list[str]) -> None:
                          f"error in {Path(out) / 'index.html'}); fix them and rerun: finished captures are skipped")
 
 
-def _synth(argv):
-    raise StageError("the scene generator is a command of its own: python -m synth SCENE OUT (or make synth "
-                     "SCENE=… OUT=…)")
+def _synth(argv: list[str]) -> None:
+    """``python -m pipeline synth …``: the scene generator's own command, ``python -m synth …``, run as a child
+    process (the generator sits above this package, which never imports it); its exit code is this command's."""
+    import subprocess
+
+    rc = subprocess.run([sys.executable, "-m", "synth", *argv]).returncode
+    if rc:
+        raise SystemExit(rc)
 
 
 def _board(argv):
@@ -174,7 +179,8 @@ COMMANDS = {"synth": _synth, **{s.name: _stage_command(s) for s in STAGES}, "rec
 def usage() -> str:
     """What ``python -m pipeline`` prints without a command: the commands, one line each."""
     rows = [("reconstruct", COMMAND_CLASSES["reconstruct"].__doc__)] + [(st.name, st.summary) for st in STAGES] + [
-        ("batch", COMMAND_CLASSES["batch"].__doc__), ("board", BoardArgs.__doc__.split(":")[0] + ".")]
+        ("batch", COMMAND_CLASSES["batch"].__doc__), ("board", BoardArgs.__doc__.split(":")[0] + "."),
+        ("synth", "A synthetic capture with ground truth, for tests and benchmarks (the command python -m synth).")]
     return "\n".join(["usage: python -m pipeline <command> WORKSPACE [--config FILE] [--force] [options]", "",
                       "commands:"] + [f"  {name:<12} {' '.join(text.split())}" for name, text in rows] + [
         "", "python -m pipeline <command> --help    the options a user needs; --help-all: every option"])

@@ -234,3 +234,13 @@ def test_config_from_args_matches_the_preset_plus_options():
     ref.train.iterations, ref.masks.stereo = 7, False
     assert cfg == ref
 
+
+
+def test_pipeline_synth_hands_over_to_the_generator(tmp_path):
+    """``python -m pipeline synth`` runs ``python -m synth`` (the generator sits above the package, which never
+    imports it): the generator's one-line error and exit code come through."""
+    scene, out_dir = tmp_path / "missing.yaml", tmp_path / "o"
+    out = subprocess.run([sys.executable, "-m", "pipeline", "synth", str(scene), str(out_dir)], cwd=ROOT,
+                         capture_output=True, text=True)
+    assert out.returncode == 2 and "missing.yaml" in out.stderr and len(out.stderr.strip().splitlines()) == 1
+    assert not out_dir.exists()
