@@ -43,6 +43,8 @@ def _shown(value) -> str:
 
 
 def _metavar(value, hint=None) -> str:
+    if hasattr(hint, "__metadata__"):  # Annotated[T, …]: T
+        hint = typing.get_args(hint)[0]
     if typing.get_origin(hint) is typing.Literal:
         return "{" + ",".join(map(str, typing.get_args(hint))) + "}"
     if isinstance(value, bool):
@@ -82,7 +84,8 @@ def short_help(cls, default, prog: str) -> str:
         if f.name in positional:
             continue
         if not dataclasses.is_dataclass(value):
-            lines.append(_line(f"{flag(f.name, value)} {_metavar(value)}".rstrip(), _arg_help(hints[f.name])))
+            lines.append(_line(f"{flag(f.name, value)} {_metavar(value, hints[f.name])}".rstrip(),
+                               _arg_help(hints[f.name])))
             continue
         for name in USER_OPTIONS:
             section, leaf = name.split(".", 1)

@@ -191,12 +191,11 @@ class Sources:
     """Paths a user gives a run besides the workspace; read, never modified."""
 
     images: Path | None = None
-    """Folder of photos, or a video file (MP4, MOV, …: its sharpest frames are taken) (stage ``cameras``)."""
+    """Folder of photos, or a video file (MP4, MOV, …: its sharpest frames are taken)."""
     masks_dir: Path | None = None
-    """Folder of user masks named like the photos (stage ``masks``); automatic masks without it."""
+    """Folder of your masks (white = object), named like the photos; automatic masks without it."""
     given_cameras: Path | None = None
-    """Given cameras instead of SfM (stage ``cameras``): an IDR/DVR/NeuS cameras.npz (one world_mat_i per photo in
-    sorted order) or a COLMAP model folder."""
+    """Cameras instead of SfM: an IDR/DVR/NeuS cameras.npz (a world_mat_i per photo, sorted) or a COLMAP model."""
 
 
 @dataclass
