@@ -124,8 +124,7 @@ def run_arm(scene: str, over: dict, mapping: Path, preset: str, options: list[st
     import pipeline.cameras.mapping as sfm_mapping
 
     sfm_mapping.map_photos = from_mapping(mapping)
-    shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
+    ev.fresh_folder(work)
     spec = {"scene": scene, "cameras": "sfm", "preset": preset, "knob": "arm"}
     return ev.run_synthetic(spec, work, {"arm": (options, over)})
 
@@ -163,9 +162,7 @@ def dtu(argv: list[str]) -> None:
     ap.add_argument("--reference-cameras", action="store_true",
                     help="DTU's own calibrated cameras (given to the cameras stage) instead of our SfM")
     a, options = ap.parse_known_args(argv)
-    work = ev.RUNS / "work" / "dtu_arm"
-    shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
+    work = ev.fresh_folder(ev.RUNS / "work" / "dtu_arm")
     r = ev.run_dtu({"knob": "arm", "preset": a.preset, "reference_cameras": a.reference_cameras}, work,
                    {"arm": (options, {})})
     keys = ("psnr", "psnr_train", "psnr_gain_fit", "psnr_train_gain_fit", "psnr_on_model", "psnr_reaimed",
@@ -180,9 +177,7 @@ def gt(argv: list[str]) -> None:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--over", type=json.loads, default={}, help="scene overrides (JSON), as bench/run.py's")
     a, options = ap.parse_known_args(argv)
-    work = ev.RUNS / "work" / "gt_arm" / a.scene
-    shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
+    work = ev.fresh_folder(ev.RUNS / "work" / "gt_arm" / a.scene)
     r = ev.run_synthetic({"scene": a.scene, "cameras": "gt", "preset": a.preset, "knob": "arm"}, work,
                          {"arm": (options, a.over)})
     keys = ("psnr", "psnr_gain_fit", "chamfer_rel", "fscore", "seconds")

@@ -44,6 +44,13 @@ HELDOUT = "heldout_"
 """Prefix of the held-out photos in a photos-only run's folder (sorted after the training photos)."""
 
 
+def fresh_folder(path: Path) -> Path:
+    """``path`` emptied (removed and made again): a run's work folder."""
+    shutil.rmtree(path, ignore_errors=True)
+    path.mkdir(parents=True)
+    return path
+
+
 def scene(name: str, over: dict) -> Path:
     """Render (once, cached in bench/runs/scenes) the synthetic scene with overrides; returns its folder."""
     import yaml

@@ -37,7 +37,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.evaluate import RUNS, run_cameras, run_dtu, run_synthetic  # noqa: E402
+from bench.evaluate import RUNS, fresh_folder, run_cameras, run_dtu, run_synthetic  # noqa: E402
 from bench.report import DEFAULTS_VERSION, write  # noqa: E402
 
 FLOOR_SCENES = ("cow", "jar", "book")
@@ -196,9 +196,7 @@ def one(spec: dict, work: Path) -> dict:
 
 def run_child(spec: dict) -> None:
     """Child process: one run, its result printed as one RESULT line."""
-    work = RUNS / "work" / f"{os.getpid()}"
-    shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
+    work = fresh_folder(RUNS / "work" / f"{os.getpid()}")
     try:
         res = one(spec, work)
     finally:

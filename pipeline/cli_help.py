@@ -87,14 +87,12 @@ def short_help(cls, default, prog: str) -> str:
             lines.append(_line(f"{flag(f.name, value)} {_metavar(value, hints[f.name])}".rstrip(),
                                _arg_help(hints[f.name])))
             continue
-        for name in USER_OPTIONS:
-            section, leaf = name.split(".", 1)
-            if section != f.name:
-                continue
+        section_hints = typing.get_type_hints(type(value))
+        for name in [n for n in USER_OPTIONS if n.split(".", 1)[0] == f.name]:
+            leaf = name.split(".", 1)[1]
             v = getattr(value, leaf)
-            doc = field_doc(type(value), leaf)
-            hint = typing.get_type_hints(type(value))[leaf]
-            lines.append(_line(f"{flag(name, v)} {_metavar(v, hint)}".rstrip(), f"{doc} (now: {_shown(v)})"))
+            lines.append(_line(f"{flag(name, v)} {_metavar(v, section_hints[leaf])}".rstrip(),
+                               f"{field_doc(type(value), leaf)} (now: {_shown(v)})"))
             n_shown += 1
     n_all = sum(len(_leaves(getattr(default, f.name))) for f in dataclasses.fields(cls)
                 if dataclasses.is_dataclass(getattr(default, f.name, None)))

@@ -48,6 +48,9 @@ class Config:
 
 
 def _resolve(tp):
+    """The type an option holds: ``T`` of ``Optional[T]`` and of ``Annotated[T, …]`` (a range marker)."""
+    if hasattr(tp, "__metadata__"):
+        return _resolve(typing.get_args(tp)[0])
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
@@ -143,8 +146,7 @@ def check_config(cfg, where: str = "", here: bool = False) -> None:
     hints = typing.get_type_hints(type(cfg), include_extras=True)
     for f in dataclasses.fields(cfg):
         hint = hints[f.name]
-        name, value, tp = where + f.name, getattr(cfg, f.name), _resolve(typing.get_args(hint)[0] if is_positive(
-            hint) else hint)
+        name, value, tp = where + f.name, getattr(cfg, f.name), _resolve(hint)
         if dataclasses.is_dataclass(tp):
             if not isinstance(value, tp):
                 raise ValueError(f"{name}: expected a mapping of its options, got {value!r}")

@@ -35,6 +35,13 @@ def pytest_collection_modifyitems(config, items):
     items[:] = [item for f in order for item in f]
 
 
+def cli_options(cls) -> set[str]:
+    """Every option string (``--train.iterations``, …) the generated command class ``cls`` parses."""
+    import tyro
+
+    return {o for a in tyro.extras.get_parser(cls)._actions for o in a.option_strings}
+
+
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)

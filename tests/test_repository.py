@@ -7,7 +7,7 @@ import re
 import subprocess
 from pathlib import Path
 
-from tests.conftest import ROOT
+from tests.conftest import ROOT, cli_options
 
 HISTORY = re.compile(r"\b[Ss]tops? [0-9]+\b|\b[Ii]ssues? [0-9]+\b")
 """A development-history marker: the word stop(s) or issue(s) followed by a number."""
@@ -43,18 +43,12 @@ def test_readme_is_short_and_starts_with_the_two_commands():
     assert lines[0].startswith("# ") and "make setup && make reconstruct IMAGES=" in head and "make test" in head
 
 
-def _options(cls) -> set[str]:
-    import tyro
-
-    return {o for a in tyro.extras.get_parser(cls)._actions for o in a.option_strings}
-
-
 def test_every_option_the_docs_name_parses():
     """Each ``--section.option`` that the README, docs/, the CHANGELOG or the Makefile names is an option of
     ``python -m pipeline reconstruct`` or ``batch``."""
     from pipeline.cli import COMMAND_CLASSES
 
-    known = _options(COMMAND_CLASSES["reconstruct"]) | _options(COMMAND_CLASSES["batch"])
+    known = cli_options(COMMAND_CLASSES["reconstruct"]) | cli_options(COMMAND_CLASSES["batch"])
     pages = [ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "Makefile", *sorted((ROOT / "docs").glob("*.md"))]
     named = {}
     for page in pages:

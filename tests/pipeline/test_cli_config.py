@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.cli import main
 from pipeline.config import Config, load_config
-from tests.conftest import ROOT
+from tests.conftest import ROOT, cli_options
 
 
 @pytest.mark.parametrize("name", ["fast", "default", "balanced", "quality"])
@@ -200,12 +200,6 @@ def test_mesh_without_model(tmp_path, capsys):
     assert rc == 2 and "final.pt" in capsys.readouterr().err
 
 
-def _options(cls) -> set[str]:
-    import tyro
-
-    return {o for a in tyro.extras.get_parser(cls)._actions for o in a.option_strings}
-
-
 def test_stage_table_drives_cli_config_and_make():
     """One stage table: every stage is a CLI command and a make target, every config section belongs to a stage,
     and a stage command offers its own section's options only."""
@@ -221,7 +215,7 @@ def test_stage_table_drives_cli_config_and_make():
     assert {s.section for s in STAGES if s.section} == {f.name for f in dataclasses.fields(Config)}
     assert {f.name: f.default_factory for f in dataclasses.fields(Config)} == {
         s.section: s.options for s in STAGES if s.section}  # Config is declared to match the table
-    masks = _options(COMMAND_CLASSES["masks"])
+    masks = cli_options(COMMAND_CLASSES["masks"])
     assert "--masks.hull-res" in masks and "--masks-dir" in masks
     assert not any(o.startswith("--train.") for o in masks) and "--images" not in masks
 
