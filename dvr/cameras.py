@@ -18,6 +18,8 @@ import torch
 from kornia.geometry import create_meshgrid
 from kornia.geometry.conversions import convert_points_to_homogeneous
 
+from dvr.atomic import save_npz
+
 
 @dataclass
 class Cameras:
@@ -213,7 +215,7 @@ def save_cameras(path: str | Path, K: np.ndarray, R: np.ndarray, t: np.ndarray, 
         out[f"world_mat_{i}"] = W
         out[f"scale_mat_{i}"] = scale_mat
         out[f"camera_mat_{i}"] = K[i]
-    np.savez(path, **out)
+    save_npz(Path(path), **out)  # whole or absent (dvr.atomic)
 
 
 def pixel_rays(

@@ -4,7 +4,6 @@ line (ValueError)."""
 
 from __future__ import annotations
 
-import os
 import pickle
 from dataclasses import asdict
 from pathlib import Path
@@ -12,22 +11,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dvr.atomic import save_torch
 from dvr.config import FieldConfig
 from dvr.fields import Field, make_field
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """``text`` to ``path`` through a temporary file beside it, renamed over it."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
-def atomic_save(obj, path: Path) -> None:
-    """``torch.save`` of ``obj`` to ``path`` through a temporary file beside it, renamed over it."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 def save_model(path: Path, model: Field, cfg: FieldConfig, scale_mat: np.ndarray, extra: dict | None = None,
@@ -36,8 +22,8 @@ def save_model(path: Path, model: Field, cfg: FieldConfig, scale_mat: np.ndarray
     cameras.npz (identity when the field was trained in that frame); the support plane the field is clipped to
     (field frame) is kept too."""
     support = None if model.support is None else model.support.cpu().numpy()
-    atomic_save({"field": model.state_dict(), "field_config": asdict(cfg), "scale_mat": scale_mat,
-                 "frame": np.eye(4) if frame is None else frame, "support": support, **(extra or {})}, path)
+    save_torch({"field": model.state_dict(), "field_config": asdict(cfg), "scale_mat": scale_mat,
+                "frame": np.eye(4) if frame is None else frame, "support": support, **(extra or {})}, path)
 
 
 # what torch.load and the reading of its dict raise on a file that is not what was saved: truncated or empty (a

@@ -17,8 +17,9 @@ from tqdm import tqdm
 
 from dvr import losses as L
 from dvr.appearance import ViewAppearance
+from dvr.atomic import save_torch, write_image, write_json, write_text
 from dvr.cameras import in_contact_band, plane_height
-from dvr.checkpoint import atomic_save, atomic_write_text, read_saved, save_model
+from dvr.checkpoint import read_saved, save_model
 from dvr.config import LossWeights, TrainConfig
 from dvr.data import RaySampler, SceneData
 from dvr.device import resolve_device
@@ -213,7 +214,7 @@ class Trainer:
         inside, carving = initial_inside(self.cfg, self.data, self.near)
         if carving is not None:
             summary = {k: (v if math.isfinite(v) else None) for k, v in vars(carving).items() if k != "inside"}
-            (self.out / "photo_hull.json").write_text(json.dumps(summary, indent=1))
+            write_json(self.out / "photo_hull.json", summary, indent=1)
         return inside_logits(inside, device=self.data.masks.device)
 
     # ----------------------------------------------------------------- checkpoints
@@ -224,7 +225,7 @@ class Trainer:
 
     def save_checkpoint(self) -> None:
         """Write everything an exact resume needs: step, weights, optimizer, schedule and every RNG state."""
-        atomic_save({
+        save_torch({
             "step": self.step, "elapsed": self.elapsed, "skipped": self.skipped,
             "field": self.model.state_dict(), "opt": self.opt.state_dict(), "sched": self.sched.state_dict(),
             "appearance": self.appearance.state_dict() if self.appearance is not None else None,
@@ -280,7 +281,24 @@ class Trainer:
             torch.cuda.set_rng_state_all(ck["rng_cuda"])
         self.step, self.skipped = ck["step"], ck["skipped"]
         self.elapsed = ck["elapsed"] + self.setup_seconds  # the earlier runs' time and this run's setup
+        self._trim_log()
         return True
+
+    def _trim_log(self) -> None:
+        """``log.jsonl`` up to the resumed step: the lines of the steps after the checkpoint go (they are logged again
+        as they are redone), and so does a line a kill or a full disk cut short."""
+        log = self.out / "log.jsonl"
+        if not log.exists():
+            return
+        kept = []
+        for line in log.read_text(errors="replace").splitlines():
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(rec, dict) and isinstance(rec.get("step"), int) and rec["step"] <= self.step:
+                kept.append(line + "\n")
+        write_text(log, "".join(kept))
 
     # ----------------------------------------------------------------- one step
     def n_steps_at(self, step: int) -> int:
@@ -485,8 +503,8 @@ class Trainer:
         gt = self.data.images[v, :h, :w].cpu().numpy()
         gt = cv2.resize(gt, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_AREA)
         both = np.concatenate([gt, img.cpu().numpy()], axis=1)
-        cv2.imwrite(str(self.out / f"preview_{tag}.png"), cv2.cvtColor((both * 255).clip(0, 255).astype(np.uint8),
-                                                                        cv2.COLOR_RGB2BGR))
+        write_image(self.out / f"preview_{tag}.png", cv2.cvtColor((both * 255).clip(0, 255).astype(np.uint8),
+                                                                  cv2.COLOR_RGB2BGR))
 
     def fit(self, stop_after: int | None = None) -> dict[str, float]:
         """Train until ``cfg.iterations`` (or ``stop_after`` steps in this call, for tests of resume)."""
@@ -532,7 +550,7 @@ class Trainer:
         """The fitted per-view colour transforms, by image name: a gain per RGB channel."""
         gains = self.appearance.gains().cpu().numpy()
         rec = {name: {"gain": [round(float(x), 5) for x in g]} for name, g in zip(self.data.names, gains)}
-        atomic_write_text(path, json.dumps(rec, indent=1))
+        write_json(path, rec, indent=1)
 
     def finish(self) -> Path:
         """Write ``final.pt`` (weights + field config + scale_mat) and a last preview."""

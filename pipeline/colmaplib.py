@@ -31,3 +31,31 @@ def info_to_stderr() -> None:
 
 
 warnings_only()
+
+
+def write_model(rec, folder) -> None:
+    """``rec`` written to the folder ``folder`` whole or not at all: into a temporary folder beside it, checked for a
+    full disk (:func:`dvr.atomic.check_room`: COLMAP's writer says nothing when the disk fills, it leaves the files
+    cut short), then moved into place (a model already there is replaced)."""
+    from dvr.atomic import atomic_path, check_room
+
+    with atomic_path(folder, folder=True) as tmp:
+        rec.write(tmp)
+        check_room(tmp)
+
+
+def raise_if_disk_full(log) -> None:
+    """An OSError (ENOSPC) naming the COLMAP child's ``log`` when it says the disk filled (COLMAP's or SQLite's words,
+    or a Python OSError's): that rung failed for want of space, which no other rung has either."""
+    import errno
+    import os
+    from pathlib import Path
+
+    from dvr.atomic import DISK_FULL_WORDS
+
+    try:
+        text = Path(log).read_text(errors="replace")
+    except OSError:
+        return
+    if any(w in text for w in DISK_FULL_WORDS):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), f"{Path(log).parent} (COLMAP's log: {log})")

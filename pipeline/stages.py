@@ -19,12 +19,16 @@ See docs/design.md, "Stage contracts".
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from dvr.atomic import is_disk_full
 from dvr.config import TrainConfig
 from pipeline.cameras import stage as cameras
 from pipeline.cameras.config import CamerasConfig
@@ -32,6 +36,7 @@ from pipeline.config import Config, check_config
 from pipeline.depth import stage as depth
 from pipeline.depth.config import DepthConfig
 from pipeline.errors import StageError
+from pipeline.lock import workspace_lock
 from pipeline.masks import stage as masks
 from pipeline.masks.config import MasksConfig
 from pipeline.mesh import stage as mesh
@@ -203,11 +208,21 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
     read them; ``stop_after`` stops training early (tests of resuming). Raises StageError (one line: the file and
     the fix) on bad input."""
     p = _plan(name, workspace, config, images, masks_dir, given_cameras)
-    stage, ws = p.stage, p.ws
     if p.cfg is not None:
-        check_config(p.cfg, stage.section + ".", here=True)
-    if stage.check is not None:
-        stage.check(ws, p.src)
+        check_config(p.cfg, p.stage.section + ".", here=True)
+    if p.stage.check is not None:  # before the lock: a workspace inside the photos gets nothing written
+        p.stage.check(p.ws, p.src)
+    # the lock for the checks too (another run may be changing what they read); a workspace not made yet is locked
+    # once the stage makes it
+    lock = workspace_lock(p.ws.root, f"the {name} stage", required=False) if p.ws.root.is_dir() else \
+        contextlib.nullcontext()
+    with disk_full_is_one_line(name, p.ws), lock:
+        return _run_locked(p, force, stop_after)
+
+
+def _run_locked(p: _Plan, force: bool, stop_after: int | None) -> bool:
+    """:func:`run_stage` after its plan and checks, holding the workspace (or about to make it)."""
+    stage, ws, name = p.stage, p.ws, p.stage.name
     for path, producer in stage.requires(ws):
         ws.require(path, hint=f"run the {producer} stage first")
         if ws.unfinished(producer) and path in stage_named(producer).outputs(ws):
@@ -217,20 +232,62 @@ def run_stage(name: str, workspace: str | Path | Workspace, config: Config | Non
     if not force and not stage.always and ws.up_to_date(name, p.config_hash, inputs, outputs):
         print(f"{name}: up to date ({outputs[0] if outputs else ws.root})")
         return False
-    ws.make_root()  # only a stage that runs writes: a call with nothing to do leaves the workspace untouched
-    before = ws.begin(name, outputs)
-    t0 = time.perf_counter()
-    try:
-        done = stage.body(Job(ws, p.cfg, p.src, force, p.config_hash, inputs, stop_after,
-                               tuple(s.name for s in STAGES)))
-    except BaseException:  # a failure that wrote nothing (bad input found first) leaves the workspace as it was
-        ws.undo_begin(name, outputs, before)
-        raise
-    if done is None:  # stopped early on request; the next run resumes
-        return True
-    seconds = done.seconds if done.seconds is not None else time.perf_counter() - t0
-    ws.mark_done(name, p.config_hash, seconds, done.details)
+    ws.make_root()  # only a stage that runs writes: a call with nothing to do leaves the workspace as it was
+    with workspace_lock(ws.root, f"the {name} stage"):
+        before = ws.begin(name, outputs)
+        t0 = time.perf_counter()
+        try:
+            done = stage.body(Job(ws, p.cfg, p.src, force, p.config_hash, inputs, stop_after,
+                                   tuple(s.name for s in STAGES)))
+        except BaseException:  # a failure that wrote nothing (bad input found first) leaves the workspace as it was
+            ws.undo_begin(name, outputs, before)
+            raise
+        if done is None:  # stopped early on request; the next run resumes
+            return True
+        seconds = done.seconds if done.seconds is not None else time.perf_counter() - t0
+        ws.mark_done(name, p.config_hash, seconds, done.details)
     return True
+
+
+def _size(n: float) -> str:
+    """``n`` bytes in words (kB, MB, GB: powers of 1000)."""
+    for unit in ("bytes", "kB", "MB"):
+        if n < 1000:
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} GB"
+
+
+def disk_full_message(name: str, ws: Workspace, exc: BaseException) -> str:
+    """The one line of stage ``name`` stopped by a full disk or quota (``exc``, :func:`dvr.atomic.is_disk_full`):
+    what it was writing (and its size when known), the space left on the workspace's disk, and what to do."""
+    cause = exc
+    while cause is not None and not (isinstance(cause, OSError) and cause.filename):
+        cause = cause.__cause__ or cause.__context__
+    path, size = getattr(cause, "filename", None), getattr(cause, "size", None)
+    what = f"{path}{f' ({_size(size)})' if size else ''}" if path else "its files"
+    try:
+        free = f"{_size(shutil.disk_usage(ws.root).free)} free"
+    except OSError:
+        free = "free space unknown"
+    quota = getattr(cause, "errno", None) == getattr(errno, "EDQUOT", -1)
+    return (f"{name}: the {'disk quota' if quota else 'disk'} is full: no room to write {what}; {free} on the disk "
+            f"of {ws.root}. Free some space and run the same command again: finished stages are kept")
+
+
+@contextlib.contextmanager
+def disk_full_is_one_line(name: str, ws: Workspace):
+    """A full disk or quota inside the block (an OSError with ENOSPC or EDQUOT, or COLMAP's and SQLite's words for
+    it) as stage ``name``'s one-line StageError (:func:`disk_full_message`). Every file is written atomically
+    (:mod:`dvr.atomic`): what the stage had finished stays whole, its marker makes the next run redo it."""
+    try:
+        yield
+    except StageError:
+        raise
+    except Exception as exc:
+        if not is_disk_full(exc):
+            raise
+        raise StageError(disk_full_message(name, ws, exc)) from exc
 
 
 def check_user_masks(images: str | Path, masks_dir: str | Path) -> None:
@@ -253,13 +310,18 @@ def reconstruct(images: str | Path | None, workspace: str | Path, config: Config
     ws = Workspace(workspace)
     if images is None and not ws.cameras.exists():
         raise StageError(f"{ws.root}: no photos given and no cameras.npz there; pass the photo folder (--images DIR)")
+    if images is not None:
+        _photos_outside_workspace(ws, Sources(images=Path(images).resolve()))
     if masks_dir is not None and images is not None:
         check_user_masks(images, masks_dir)
     given = {"images": images, "masks_dir": masks_dir, "given_cameras": given_cameras}
-    for stage in STAGES:
-        # a stage of the photos runs when they are given or when any of its own sources is (user masks for a
-        # workspace that holds images; given cameras without photos: the cameras stage says what is missing)
-        if stage.from_photos and not any(given[k] is not None for k in stage.sources) and images is None:
-            continue
-        run_stage(stage.name, ws, config, force, **{k: given[k] for k in stage.sources})
+    ws.make_root()
+    # the workspace is this run's from the first stage to the last: no other run slips in between two stages
+    with disk_full_is_one_line("reconstruct", ws), workspace_lock(ws.root, "reconstruct"):
+        for stage in STAGES:
+            # a stage of the photos runs when they are given or when any of its own sources is (user masks for a
+            # workspace that holds images; given cameras without photos: the cameras stage says what is missing)
+            if stage.from_photos and not any(given[k] is not None for k in stage.sources) and images is None:
+                continue
+            run_stage(stage.name, ws, config, force, **{k: given[k] for k in stage.sources})
     return ws.mesh / "textured.glb"

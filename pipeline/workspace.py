@@ -5,7 +5,9 @@ output it lists exists, and no input is newer than the stamp. Stages write their
 stamp last, so a killed stage is never taken as done. A stage that starts writes ``.stages/<stage>.unfinished``
 and removes it with its stamp: while it is there, the stage's outputs are those of an older run or half written
 (a run that failed or was killed), and later stages refuse to read them. A run that fails having changed none of
-its outputs (bad input found first) leaves stamp and marker as it found them.
+its outputs (bad input found first) leaves stamp and marker as it found them. Every file is written atomically
+(:mod:`dvr.atomic`: whole or absent, never half written), and one run at a time works in a workspace
+(:mod:`pipeline.lock`).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dvr.atomic import save_npz, write_bytes, write_json, write_text
 from pipeline.errors import StageError
 
 
@@ -119,9 +122,7 @@ class Workspace:
         """Write the stage's stamp (atomically, after its outputs): config hash, seconds and details."""
         self.stages.mkdir(parents=True, exist_ok=True)
         rec = {"config": cfg_hash, "seconds": round(seconds, 3), "finished": time.time(), **(extra or {})}
-        tmp = self._stamp(stage).with_suffix(".tmp")
-        tmp.write_text(json.dumps(rec, indent=1))
-        os.replace(tmp, self._stamp(stage))
+        write_json(self._stamp(stage), rec, indent=1)
         self._unfinished(stage).unlink(missing_ok=True)
 
     def stamp(self, stage: str) -> dict | None:
@@ -138,9 +139,9 @@ class Workspace:
         found = stamp.is_file()
         before = Before(stamp.read_bytes() if found else None, stamp.stat().st_mtime if found else 0.0,
                         marker.exists(), outputs_state(outputs))
-        stamp.unlink(missing_ok=True)
         self.stages.mkdir(parents=True, exist_ok=True)
-        marker.write_text(f"started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        write_text(marker, f"started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")  # first: a full disk changes nothing
+        stamp.unlink(missing_ok=True)
         return before
 
     def undo_begin(self, stage: str, outputs: list[Path], before: Before) -> None:
@@ -150,8 +151,11 @@ class Workspace:
             return
         stamp = self._stamp(stage)
         if before.stamp is not None:
-            stamp.write_bytes(before.stamp)
-            os.utime(stamp, (before.stamp_mtime, before.stamp_mtime))
+            try:
+                write_bytes(stamp, before.stamp)
+                os.utime(stamp, (before.stamp_mtime, before.stamp_mtime))
+            except OSError:  # no room for it (a full disk): the stage is not done, its marker stays, it runs again
+                return
         if not before.unfinished:
             self._unfinished(stage).unlink(missing_ok=True)
 
@@ -275,7 +279,7 @@ def subset_workspace(full: Path, dst: Path, keep: list[int]) -> None:
                 shutil.copy2(f, Path(dst) / sub / f.name)
     z = np.load(Path(full) / "cameras.npz")
     extra = {k: z[k] for k in ("scale_mat", "ground_plane") if k in z.files}
-    np.savez(Path(dst) / "cameras.npz", **extra, **{f"{k}_{j}": z[f"{k}_{i}"] for j, i in enumerate(keep)
+    save_npz(Path(dst) / "cameras.npz", **extra, **{f"{k}_{j}": z[f"{k}_{i}"] for j, i in enumerate(keep)
                                                     for k in ("world_mat", "scale_mat", "camera_mat")})
     if (Path(full) / "points.ply").exists():
         shutil.copy2(Path(full) / "points.ply", Path(dst) / "points.ply")

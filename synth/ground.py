@@ -1,9 +1,11 @@
-"""The ``ground`` effect: the plane the object rests on.
+"""The ``ground`` effect: the plane the object rests on or hangs from.
 
-The plane is horizontal (normal +z of the canonical frame) at the object's lowest point plus ``sink`` (the object
-sinks that far into it, so it touches everywhere it rests), runs beyond every frame (an infinite plane: rays that
-reach it never see the backdrop), and hides whatever of the object lies below it. Its albedo is a procedural
-pattern of the plane coordinates (``wood`` planks, ``tiles`` with grout, ``checker``, quantised ``noise``). With
+The plane is a floor (``normal`` +z of the canonical frame, the default) or any other plane at the object's far
+side, a wall it hangs on (``normal`` [1, 0, 0]: the wall at the object's smallest x): it lies at the object's
+extreme point along −``normal`` plus ``sink`` (the object sinks that far into it, so it touches everywhere it
+rests), runs beyond every frame (an infinite plane: rays that reach it never see the backdrop), and hides whatever
+of the object lies behind it. Its albedo is a procedural pattern of the plane coordinates (on a wall: along it
+horizontally, and up it) (``wood`` planks, ``tiles`` with grout, ``checker``, quantised ``noise``). With
 lighting on it is shaded by the scene's lights with a soft shadow: each light is an area light sampled by a fixed
 set of directions (the same in every view, so the shadow is part of the floor, as a real one is), and the ambient
 term is darkened near the object (a contact shadow, ``shadow`` strength, ``softness`` radius). With ``board``
@@ -27,12 +29,42 @@ LIGHT_SAMPLES = 6
 """Directions per light for the soft shadow (fixed, so every view sees the same shadow)."""
 
 
-def plane_hits(origins: np.ndarray, dirs: np.ndarray, z0: float) -> tuple[np.ndarray, np.ndarray]:
-    """Rays (M, 3) that reach the plane z = z0 from above, and their depth (inf where they do not)."""
-    down = (dirs[:, 2] < -1e-12) & (origins[:, 2] > z0)
+UP = (0.0, 0.0, 1.0)
+
+
+def plane_normal(e: Effect) -> np.ndarray:
+    """The unit normal (3,) of a ground effect's plane, towards the object."""
+    n = np.asarray(e.normal, float)
+    if n.shape != (3,) or not np.isfinite(n).all() or np.linalg.norm(n) < 1e-9:
+        raise ValueError(f"ground normal must be 3 finite numbers, not all 0, got {e.normal}")
+    return n / np.linalg.norm(n)
+
+
+def plane_hits(origins: np.ndarray, dirs: np.ndarray, z0: float,
+               normal: np.ndarray | tuple = UP) -> tuple[np.ndarray, np.ndarray]:
+    """Rays (M, 3) that reach the plane x·normal = z0 from its front (the side ``normal`` points to), and their depth
+    (inf where they do not)."""
+    h_o = origins[:, 2] if tuple(normal) == UP else origins @ normal
+    rate = dirs[:, 2] if tuple(normal) == UP else dirs @ normal
+    down = (rate < -1e-12) & (h_o > z0)
     t = np.full(len(origins), np.inf)
-    t[down] = (z0 - origins[down, 2]) / dirs[down, 2]
+    t[down] = (z0 - h_o[down]) / rate[down]
     return down, t
+
+
+def plane_coords(points: np.ndarray, normal: np.ndarray | tuple = UP) -> np.ndarray:
+    """Coordinates (M, 2) of points on the plane of unit ``normal``: (x, y) on a floor; elsewhere along the plane
+    horizontally, then up it (a wall's pattern stands upright)."""
+    if tuple(normal) == UP:
+        return points[:, :2]
+    n = np.asarray(normal, float)
+    e1 = np.cross(UP, n)
+    if np.linalg.norm(e1) < 1e-6:  # a ceiling: any frame on it
+        e1, e2 = plane_basis(n)
+    else:
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+    return np.stack([points @ e1, points @ e2], 1)
 
 
 def _hash(ij: np.ndarray, seed: int, k: int = 0) -> np.ndarray:
@@ -158,22 +190,25 @@ def light_directions(direction: np.ndarray, n: int = LIGHT_SAMPLES, radius: floa
 
 def ground_shading(points: np.ndarray, lights: list[list[float]], ambient: float, e: Effect, occluded,
                    distance) -> np.ndarray:
-    """Shading factor (M,) of ground points under directional ``lights`` ([dx, dy, dz, intensity]).
+    """Shading factor (M,) of ground points under directional ``lights`` ([dx, dy, dz, intensity]), the plane's
+    normal that of ``e``.
 
     ``occluded(origins, dirs)`` → bool (M,): the object blocks the ray; ``distance(points)`` → (M,) distance to the
     object. Ambient × contact shadow + Σ intensity · cos · (fraction of the area light the object leaves visible).
     """
     contact = 1.0 - e.shadow * np.exp(-np.maximum(distance(points), 0.0) / max(e.softness, 1e-6))
     shade = ambient * contact
-    lifted = points + np.array([0.0, 0.0, 1e-4])
+    n = plane_normal(e)
+    lifted = points + 1e-4 * n
     for lx, ly, lz, li in lights:
         ldir = np.array([lx, ly, lz], float)
         ldir /= np.linalg.norm(ldir)
-        if ldir[2] <= 0:
-            continue  # a light from below the floor does not light it
+        cos = float(ldir @ n)
+        if cos <= 0:
+            continue  # a light from behind the plane (below the floor) does not light it
         dirs = light_directions(ldir)
         seen = np.zeros(len(points))
         for dv in dirs:
             seen += ~occluded(lifted, np.broadcast_to(dv, points.shape).copy())
-        shade = shade + li * ldir[2] * seen / len(dirs)
+        shade = shade + li * cos * seen / len(dirs)
     return shade

@@ -26,7 +26,7 @@ from skimage import measure
 
 from dvr.cameras import save_cameras, sphere_bounds, sphere_frame
 from pipeline.render.raycast import MeshCaster
-from synth.ground import board_spec_of, ground_albedo, ground_shading, plane_hits
+from synth.ground import board_spec_of, ground_albedo, ground_shading, plane_coords, plane_hits, plane_normal
 from synth.noise import procedural_noise
 from synth.scene import Effect, Scene, Shape
 
@@ -215,6 +215,9 @@ def camera_rig(scene: Scene, heldout: bool = False):
                 x = math.floor((i + 0.5) * nt / n) + 0.5
             az = 2 * math.pi * x / nt
             el = math.radians(lo + (hi - lo) * ((x * 0.618034) % 1.0))
+        lo_az, hi_az = rig.azimuth
+        if (lo_az, hi_az) != (0.0, 360.0):  # part of a turn: the full orbit's layout squeezed onto [lo, hi)
+            az = math.radians(lo_az + (hi_az - lo_az) * ((az / (2 * math.pi)) % 1.0))
         c = rig.radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
         fwd = -c / np.linalg.norm(c)
         right = np.cross(fwd, [0, 0, 1.0])
@@ -297,7 +300,7 @@ def background_colour(scene: Scene, o: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 def ground_colour(scene: Scene, ground: Effect, pts: np.ndarray, occlusion) -> np.ndarray:
     """Colour (M, 3) of ground points: the pattern, lit (with soft shadows) when the scene has lighting."""
-    col = ground_albedo(pts[:, :2], ground)
+    col = ground_albedo(plane_coords(pts, plane_normal(ground)), ground)
     if scene.lighting.kind == "none":
         return col
     return col * ground_shading(pts, scene.lighting.lights, scene.lighting.ambient, ground, *occlusion)[:, None]
@@ -341,8 +344,8 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
     """Render views: images (N,H,W,3) float, masks (N,H,W) bool, depth (N,H,W) canonical ray depth, exposure gains
     (N,3); the images at ``cameras.photo_scale`` × (H, W) (each of their pixels ``supersample``² samples).
 
-    With a ``ground`` effect, ``ground_z`` is the height of its plane (canonical frame): rays that reach it before
-    the object see the ground, and masks and depth are the object's alone."""
+    With a ``ground`` effect, ``ground_z`` is the height of its plane along its normal (canonical frame): rays that
+    reach it before the object see the ground, and masks and depth are the object's alone."""
     rig = scene.cameras
     H, W, ss, ps = rig.height, rig.width, int(rig.supersample), int(rig.photo_scale)
     pix, centre = pixel_samples(H, W, ss * ps)
@@ -362,7 +365,7 @@ def render_views(scene: Scene, K, R, C, mesh_shape: MeshShape | None, passes: li
         hit, depth, pts, nrm, uv = trace(o, d)
         on_ground = np.zeros(len(d), bool)
         if ground is not None:
-            on_ground, t_ground = plane_hits(o, d, ground_z)
+            on_ground, t_ground = plane_hits(o, d, ground_z, plane_normal(ground))
             hit &= ~(on_ground & (t_ground < depth))  # what of the object lies below the plane is hidden
             on_ground &= ~hit
         img = np.zeros((len(pix), 3))
@@ -455,13 +458,15 @@ def _write_sparse_depth(folder: Path, masks, depths, per_view: int, seed: int) -
 
 
 def _ground_plane(ground: Effect | None, mesh, s: float, off: np.ndarray):
-    """With a ground effect: its height in the canonical frame (the GT mesh's lowest point + ``sink``) and the
-    support plane n·x + d = 0 in the world frame (the SfM frame of the GT cameras), n up to the cameras — part of the
-    ground truth the GT cameras carry, as SfM's cameras carry the plane it finds; (None, None) without one."""
+    """With a ground effect: its height along its normal in the canonical frame (the GT mesh's lowest point along
+    it + ``sink``) and the support plane n·x + d = 0 in the world frame (the SfM frame of the GT cameras), n towards
+    the object and the cameras — part of the ground truth the GT cameras carry, as SfM's cameras carry the plane it
+    finds; (None, None) without one."""
     if ground is None:
         return None, None
-    ground_z = float(mesh.vertices[:, 2].min()) + ground.sink
-    return ground_z, [0.0, 0.0, 1.0, -float(s * ground_z + off[2])]
+    n = plane_normal(ground)
+    ground_z = float((mesh.vertices @ n).min()) + ground.sink
+    return ground_z, [*(float(x) for x in n), -float(s * ground_z + n @ off)]
 
 
 def gt_mesh(scene: Scene, mesh_shape: MeshShape | None, res: int = 256) -> trimesh.Trimesh:

@@ -97,8 +97,9 @@ class Effect:
     """noise (sigma) | exposure (amount: max relative gain change; white_balance: max relative change of each
     colour channel's gain on top; the gains of every view are written to ``gt/exposure.json``) | distortion (k1) |
     blur (sigma px) |
-    specular (amount, shininess) | ground (pattern, scale, color, color2, shadow, softness, sink, seed: a plane
-    the object rests on, see ``ground.py``; board, board_*, metres_per_unit: a printed ChArUco board on it)."""
+    specular (amount, shininess) | ground (pattern, scale, color, color2, shadow, softness, sink, normal, seed: a
+    plane the object rests on or hangs from, see ``ground.py``; board, board_*, metres_per_unit: a printed ChArUco
+    board on it)."""
     sigma: float = 0.01
     amount: float = 0.2
     white_balance: float = 0.0
@@ -119,6 +120,9 @@ class Effect:
     """ground: radius of the contact shadow (canonical units)."""
     sink: float = 0.004
     """ground: how far the object sinks into the plane (so it touches wherever it rests)."""
+    normal: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
+    """ground: the plane's normal (canonical frame), towards the object: [0, 0, 1] a floor under it, [1, 0, 0] a
+    wall at its back (its side of smallest x) that it hangs on; the plane touches the object's far side."""
     board: list[int] = field(default_factory=list)
     """ground: squares (columns, rows) of a printed ChArUco board lying on it, centred under the object, its rows
     along x, on white paper 15 mm wider all round ([]: no board; see ``pipeline/cameras/board.py``)."""
@@ -146,6 +150,9 @@ class CameraRig:
     fov_deg: float = 40.0
     elevation: list[float] = field(default_factory=lambda: [-20.0, 50.0])
     """min/max elevation in degrees (views on a spiral)."""
+    azimuth: list[float] = field(default_factory=lambda: [0.0, 360.0])
+    """min/max azimuth in degrees (about z, from +x): the views spread over [min, max) as a full orbit spreads them
+    over [0, 360); less than a full turn photographs an object on a wall from its front only."""
     rings: int = 0
     """0: views on a spiral; k > 0: k rings of views at elevations evenly spaced over ``elevation``."""
     orbit_turns: float = 0.0

@@ -28,6 +28,7 @@ from pathlib import Path
 
 from pipeline.batch.config import BatchConfig
 from pipeline.errors import StageError
+from pipeline.lock import workspace_lock
 from pipeline.stages import STAGES, check_user_masks, is_up_to_date, run_stage, stage_named
 
 
@@ -255,14 +256,22 @@ def _collect(ray, chains: _Chains, records: dict, total: int) -> None:
 
 def run_batch(captures: Path, out: Path, config=None, batch: BatchConfig | None = None) -> dict:
     """Reconstruct every capture under ``captures`` into ``out/<capture>`` on Ray; returns the summary (also
-    written as ``out/summary.json`` and ``out/index.html``). Captures already done are not touched."""
-    from pipeline.batch.summary import write_summary
+    written as ``out/summary.json`` and ``out/index.html``). Captures already done are not touched. One batch at a
+    time works in ``out`` (:mod:`pipeline.lock`), and each stage task holds its capture's workspace, so a single run
+    on a capture of a running batch stops with the lock's one line (and the batch's stage, meeting a single run,
+    fails with it)."""
     from pipeline.config import Config
 
-    config, batch = config or Config(), batch or BatchConfig()
     out = Path(out).resolve()
     caps = find_captures(captures, out)
     out.mkdir(parents=True, exist_ok=True)
+    with workspace_lock(out, "batch"):
+        return _run_batch(caps, out, config or Config(), batch or BatchConfig())
+
+
+def _run_batch(caps: list[Capture], out: Path, config, batch: BatchConfig) -> dict:
+    from pipeline.batch.summary import write_summary
+
     records: dict[str, list] = {c.name: [] for c in caps}
     todo = [c for c in caps if not capture_done(c, config)]
     for c in list(todo):  # a capture whose masks lack a photo's fails before its SfM, the others go on

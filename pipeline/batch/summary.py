@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 import time
 from pathlib import Path
 
 import cv2
 
+from dvr.atomic import write_json, write_text
 from dvr.data import list_images
 from pipeline.stages import STAGES
 from pipeline.workspace import Workspace
@@ -94,7 +94,7 @@ def write_summary(out: Path, caps: list, records: dict[str, list], seconds: floa
     summary = {"finished": time.strftime("%Y-%m-%d %H:%M:%S"), "wall_seconds": round(seconds, 1),
                "captures": len(rows), "done": sum(r["status"] in ("done", "up to date") for r in rows),
                "failed": sum(r["status"] == "failed" for r in rows), "rows": rows}
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    write_json(out / "summary.json", summary, indent=1)
     head = ("<tr><th>capture</th><th>status</th><th>registered</th><th>seconds per stage</th>"
             "<th>mask confidence</th><th>PSNR</th><th>photo | mesh</th><th>links</th></tr>")
     style = "body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}td,th{border:1px solid #ccc;" \
@@ -104,5 +104,5 @@ def write_summary(out: Path, caps: list, records: dict[str, list], seconds: floa
            f"<p>{summary['done']}/{summary['captures']} done, {summary['failed']} failed, "
            f"{summary['wall_seconds']:.0f} s wall ({summary['finished']})</p><table>{head}"
            + "".join(_html_row(out, r) for r in rows) + "</table></body></html>")
-    (out / "index.html").write_text(doc)
+    write_text(out / "index.html", doc)
     return summary

@@ -14,13 +14,13 @@ detected corners are shifted by half a pixel.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from dvr.atomic import write_json
 from dvr.metrics import umeyama
 from pipeline.errors import StageError
 from pipeline.scene.support import SupportPlane, object_height, object_points
@@ -247,11 +247,11 @@ def to_board_frame(fit: BoardFit, Rs: np.ndarray, ts: np.ndarray, pts: np.ndarra
 
 def transform_model(fit: BoardFit, model_dir: Path) -> None:
     """Move a COLMAP model on disk into the board's frame (later stages read its points beside cameras.npz)."""
-    from pipeline.colmaplib import pycolmap
+    from pipeline.colmaplib import pycolmap, write_model
 
     rec = pycolmap.Reconstruction(model_dir)
     rec.transform(pycolmap.Sim3d(fit.scale, pycolmap.Rotation3d(fit.R), fit.t))
-    rec.write(model_dir)
+    write_model(rec, model_dir)  # replaced whole: a kill leaves the model in one frame, never half of each
 
 
 def board_support(pts: np.ndarray, centers: np.ndarray, target: np.ndarray, tolerance: float = 0.01,
@@ -299,7 +299,7 @@ def use_board(root: Path, undistorted: Path, files: list[str], Ks, Rs, ts, sizes
         return Rs, ts, pts, None
     Rs, ts, pts = to_board_frame(fit, Rs, ts, pts)
     transform_model(fit, undistorted / "sparse")
-    (root / "board.json").write_text(json.dumps(fit.info(len(files)), indent=1))
+    write_json(root / "board.json", fit.info(len(files)), indent=1)
     print(f"cameras: board: {spec.describe()} seen in {fit.views}/{len(files)} views, {fit.corners} corners, "
           f"{fit.scale:.4g} m per SfM unit (corners fit to {fit.residual_mm:.2f} mm) → cameras, points and mesh in "
           "metres, origin at the board's centre, z up")

@@ -8,13 +8,13 @@ stage's last resort, used only when the SfM ladder fails or its poses contradict
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from dvr.atomic import write_image, write_json
 from pipeline.cameras.board import board_points, board_support, detect, make_board, spec_from_config
 from pipeline.errors import StageError
 from pipeline.inputs.photos import read_photo
@@ -117,7 +117,7 @@ def write_board_views(cams: BoardCameras, photos: list[Path], out: Path, max_sid
         img = cv2.undistort(read_photo(by_stem[name]), K_cv, cams.dist)
         if s < 1.0:
             img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
-        cv2.imwrite(str(out / f"{name}.png"), img)
+        write_image(out / f"{name}.png", img)
     n = len(cams.names)
     return np.repeat(K[None], n, 0), np.tile(np.array([nw, nh], float), (n, 1))
 
@@ -141,7 +141,7 @@ def board_info(cams: BoardCameras, spec, n_photos: int, why_not_sfm: str) -> dic
 
 def write_board_json(root: Path, info: dict) -> None:
     """Write ``info`` (:func:`board_info`) as ``board.json`` in the workspace ``root``."""
-    (root / "board.json").write_text(json.dumps(info, indent=1))
+    write_json(root / "board.json", info, indent=1)
 
 
 def require_board_cameras(photos: list[Path], cfg, sfm_error: StageError) -> BoardCameras:

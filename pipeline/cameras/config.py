@@ -24,6 +24,12 @@ class CamerasConfig:
     """First rung of the SfM ladder; a later rung runs only when the previous one leaves the model short."""
     last_rung: Literal["default", "guided", "dsp", "relaxed", "global", "merge"] = "merge"
     """Last rung the SfM ladder may climb to (default: a single COLMAP run)."""
+    sfm_seconds: PositiveFloat = 60.0
+    """Time budget of the SfM ladder: this many seconds plus sfm-seconds-per-photo for each photo."""
+    sfm_seconds_per_photo: PositiveFloat = 4.0
+    """The SfM ladder's budget per photo; at its end the mapper stops and the best model so far is kept."""
+    enough_registered: float = 0.9
+    """A model that registers this fraction of the photos ends the ladder; the photos it lacks are left out."""
     max_reprojection_error: float = 1.0
     """Mean reprojection error (px) above which a model counts as short and the ladder climbs."""
     max_bad_pose_fraction: float = 0.3
@@ -49,7 +55,7 @@ class CamerasConfig:
     final_retriangulate: bool = False
     """After the final passes, triangulate the points afresh from every match at the adjusted poses."""
     max_features: PositiveInt = 8192
-    """SIFT features per image at the ladder's first rung (later rungs use at least 16k)."""
+    """SIFT features per image at the ladder's first rung (later rungs up to 16k, fewer for many photos)."""
     max_h_inlier_ratio: float = 0.8
     """Two-view check: a pair whose homography explains more than this share of its inliers counts as planar."""
     object_matches: bool = True
@@ -63,7 +69,8 @@ class CamerasConfig:
     min_track_length: PositiveInt = 3
     """Sparse points that size the object's sphere need at least this many observations."""
     support: bool = True
-    """Find the floor or table the object stands on; later stages treat it and all below it as background."""
+    """Find the floor or table the object stands on (no floor: the wall it hangs on); later stages treat it and all
+    behind it as background."""
     board: bool = True
     """Look for a printed ChArUco board; when seen, cameras and meshes are in metres and it is the floor."""
     board_squares: tuple[int, int] = (5, 7)

@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dvr.atomic import atomic_path, check_room, short_write, write_bytes, write_image
 from dvr.cameras import (
     project_points,
     save_cameras,
@@ -28,6 +29,7 @@ from pipeline.cameras.config import CamerasConfig
 from pipeline.cameras.pose_sanity import axes_convergence
 from pipeline.colmaplib import warnings_only
 from pipeline.errors import StageError
+from pipeline.messages import names_or_count
 from pipeline.scene.support import SupportPlane, find_support
 from pipeline.workspace import Workspace
 
@@ -40,7 +42,7 @@ def write_points(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:
     if len(pts):
         rec["x"], rec["y"], rec["z"] = pts.T
         rec["r"], rec["g"], rec["b"] = cols.T
-    path.write_bytes((head % len(pts)).encode() + rec.tobytes())
+    write_bytes(path, (head % len(pts)).encode() + rec.tobytes())
 
 
 SPHERE_MIN_POINTS = 20
@@ -95,7 +97,7 @@ def normalization(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, centers
     return sphere_frame(c, min(r, 0.95 * dist.min()))
 
 
-def report_sfm(rec, names: list[str], cfg: CamerasConfig) -> dict:
+def report_sfm(rec, names: list[str], cfg: CamerasConfig, matches: dict[str, int] | None = None) -> dict:
     """Print and return the model's summary (registered photos, reprojection error, track length, points); a
     StageError when fewer than ``min_registered_fraction`` of the photos registered."""
     reg = {rec.image(i).name.rsplit(".", 1)[0] for i in rec.reg_image_ids()}
@@ -106,13 +108,27 @@ def report_sfm(rec, names: list[str], cfg: CamerasConfig) -> dict:
     print(f"cameras: registered {len(reg)}/{len(names)}, mean reprojection error "
           f"{info['mean_reprojection_error']:.3f} px, mean track length {info['mean_track_length']:.2f}, "
           f"{info['points']} points")
-    if missing:
-        print(f"cameras: not registered: {', '.join(missing)}", file=sys.stderr)
     if len(reg) < max(3, cfg.min_registered_fraction * len(names)):
-        raise StageError(f"only {len(reg)}/{len(names)} photos registered (missing: {', '.join(missing[:10])}"
-                         f"{'...' if len(missing) > 10 else ''}); likely too little overlap or texture, or motion "
-                         "blur — add photos between the missing ones")
+        raise StageError(f"only {len(reg)}/{len(names)} photos registered (missing: {names_or_count(missing)}); "
+                         "likely too little overlap or texture, or motion blur — add photos between the missing ones")
+    if missing:
+        print(f"cameras: left out {len(missing)} photo(s) SfM could not pose: {left_out(missing, matches)}",
+              file=sys.stderr)
     return info
+
+
+def left_out(missing: list[str], matches: dict[str, int] | None) -> str:
+    """The photos SfM left out, and why when ``matches`` (per photo, its verified matches with the posed ones) says."""
+    if matches is None:
+        return names_or_count(missing, look="the stamp .stages/cameras.json")
+    none = [n for n in missing if not matches.get(n)]
+    some = [n for n in missing if matches.get(n)]
+    parts = [f"{names_or_count(none)} (no verified match with the posed photos: another scene, or blurred)"] if none \
+        else []
+    if some:
+        parts.append(f"{names_or_count([f'{n} ({matches[n]} verified matches)' for n in some])} (too few to pose "
+                     "them: a photo between each and its neighbours helps)")
+    return "; ".join(parts)
 
 
 def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names: list[str],
@@ -123,10 +139,10 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
 
     warnings_only()  # an adjustment before turned COLMAP's info lines on: two per photo here
     und = ws.root / "sfm" / "undistorted"
-    if und.exists():
-        shutil.rmtree(und)
     model_dir = ws.root / "sfm" / "sparse" / "best"
-    pycolmap.undistort_images(und, model_dir, image_dir, output_type="COLMAP")
+    with atomic_path(und, folder=True) as tmp:  # COLMAP's folder whole or absent (dvr.atomic)
+        pycolmap.undistort_images(tmp, model_dir, image_dir, output_type="COLMAP")
+        check_room(tmp)  # its writers say nothing when the disk fills
     urec = pycolmap.Reconstruction(und / "sparse")
     by_name = {urec.image(i).name.rsplit(".", 1)[0]: urec.image(i) for i in urec.reg_image_ids()}
     if ws.images.exists():
@@ -139,12 +155,14 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
         im = by_name[name]
         cam = urec.camera(im.camera_id)
         img = cv2.imread(str(und / "images" / im.name), cv2.IMREAD_COLOR)
+        if img is None:  # COLMAP's image writer says nothing when the disk fills
+            raise short_write(und / "images" / im.name)
         h, w = img.shape[:2]
         s = min(1.0, cfg.max_side / max(h, w))
         nw, nh = round(w * s), round(h * s)
         if s < 1.0:
             img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
-        cv2.imwrite(str(ws.images / f"{name}.png"), img)
+        write_image(ws.images / f"{name}.png", img)
         K = cam.calibration_matrix().copy()
         K[0] *= nw / w  # corner-origin pixel coordinates scale exactly
         K[1] *= nh / h

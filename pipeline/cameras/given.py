@@ -10,14 +10,15 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
+from dvr.atomic import copy_file, is_disk_full, write_image
 from dvr.cameras import decompose_projection, load_cameras, save_cameras
 from pipeline.cameras.config import CamerasConfig
 from pipeline.cameras.export import export_model, report_sfm, write_points
 from pipeline.cameras.mapping import prepare_sfm_input, sfm_threads
 from pipeline.cameras.sfm import triangulate_at
+from pipeline.colmaplib import write_model
 from pipeline.errors import StageError
 from pipeline.inputs.photos import downscale, read_photo
 from pipeline.workspace import Workspace
@@ -47,7 +48,7 @@ def import_cameras(ws: Workspace, photos: list[Path], cam_file: Path, cfg: Camer
         h, w = full.shape[:2]
         img = downscale(full, cfg.max_side)
         nh, nw = img.shape[:2]
-        cv2.imwrite(str(ws.images / f"{p.stem}.png"), img)
+        write_image(ws.images / f"{p.stem}.png", img)
         Ks.append(np.diag([nw / w, nh / h, 1.0]) @ K), Rs.append(R), ts.append(t)
     save_cameras(ws.cameras, np.stack(Ks), np.stack(Rs), np.stack(ts), np.eye(4) if scale is None else scale)
     write_points(ws.root / "points.ply", np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
@@ -69,6 +70,8 @@ def triangulate_given(ws: Workspace, photos: list[Path], cfg: CamerasConfig, giv
                              threads=sfm_threads(cfg), max_h_inlier_ratio=cfg.max_h_inlier_ratio)
         n_points = rec.num_points3D()
     except Exception as exc:  # noqa: BLE001 — COLMAP failing here costs the depth, not the given cameras
+        if is_disk_full(exc):  # unless the disk is full: the stage's one line (what follows would not fit either)
+            raise
         rec, n_points = None, f"0 ({exc})"
     if rec is None or rec.num_points3D() < 50:
         print(f"warning: only {n_points} points triangulated at the given cameras: no sparse depth and no "
@@ -78,10 +81,8 @@ def triangulate_given(ws: Workspace, photos: list[Path], cfg: CamerasConfig, giv
     print(f"cameras: given cameras: {rec.num_points3D()} points triangulated at their poses "
           f"({rec.compute_mean_reprojection_error():.2f} px, track length {rec.compute_mean_track_length():.2f}) "
           f"in {time.perf_counter() - t0:.1f} s")
-    best = ws.root / "sfm" / "sparse" / "best"
-    best.mkdir(parents=True, exist_ok=True)
-    rec.write(best)
-    shutil.copy(ws.root / "sfm" / "given" / "given.db", ws.root / "sfm" / "database.db")
+    write_model(rec, ws.root / "sfm" / "sparse" / "best")
+    copy_file(ws.root / "sfm" / "given" / "given.db", ws.root / "sfm" / "database.db")
     info = report_sfm(rec, names, cfg)
     info.update(export_model(ws, rec, inp, cfg, names, scale_mat=scale))
     return info
@@ -101,9 +102,7 @@ def import_colmap_model(ws: Workspace, photos: list[Path], images: Path, model: 
     if rec.num_reg_images() == 0 or missing:
         raise StageError(f"{model}: {len(missing) or 'no'} registered image(s) of the model not found in {images} "
                          f"({', '.join(missing[:5])}); pass the photo folder the model was made from")
-    best = ws.root / "sfm" / "sparse" / "best"
-    best.mkdir(parents=True, exist_ok=True)
-    rec.write(best)
+    write_model(rec, ws.root / "sfm" / "sparse" / "best")
     names = [p.stem for p in photos]
     info = report_sfm(rec, names, cfg)
     info.update(export_model(ws, rec, images, cfg, names))

@@ -7,9 +7,9 @@ import shutil
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
+from dvr.atomic import copy_file, write_image
 from pipeline.cameras.config import CamerasConfig
 from pipeline.cameras.export import (
     SPHERE_MIN_POINTS,
@@ -17,6 +17,7 @@ from pipeline.cameras.export import (
     model_points,
 )
 from pipeline.cameras.pose_sanity import axes_convergence, model_views, pose_sanity
+from pipeline.cameras.progress import heartbeat
 from pipeline.cameras.sfm import (
     RUNG_NAMES,
     ladder,
@@ -28,14 +29,18 @@ from pipeline.cameras.sfm import (
     verify_again,
     verify_at_poses,
 )
+from pipeline.colmaplib import write_model
 from pipeline.errors import StageError
 from pipeline.inputs.photos import (
     downscale,
     read_photo,
 )
+from pipeline.messages import names_or_count
 from pipeline.scene.support import find_support
 from pipeline.workspace import Workspace
 
+MIN_RUNG_SECONDS = 5.0
+"""A rung starts only with at least this much of the SfM time budget left."""
 LARGE_PHOTOS = 2.0
 """:func:`keep_object_matches` runs when SfM saw the photos at least this many times the working size (a phone's): at
 the working size it makes the bench's weakly textured jars and the mug worse (held-out PSNR 1.8, 4.0 and 1.1 dB
@@ -70,7 +75,7 @@ def prepare_sfm_input(ws: Workspace, photos: list[Path], cfg: CamerasConfig
         if full is None:
             raise StageError(f"{p}: unreadable image; remove it from the folder")
         img = downscale(full, cfg.max_side_sfm)
-        cv2.imwrite(str(inp / f"{p.stem}.png"), img)
+        write_image(inp / f"{p.stem}.png", img)
         groups.setdefault(img.shape[:2], []).append(f"{p.stem}.png")
         shapes.append((full.shape[:2], img.shape[:2]))
     return inp, list(groups.values()), shapes
@@ -87,8 +92,12 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     final adjustment (:func:`finish_model`); returns (model, folder of the images SfM saw, summary of the rungs
     tried)."""
     rec, inp, database, rung, tried = map_photos(ws, photos, cfg)
-    rec, final, object_note = finish_model(ws, rec, database, inp, cfg, rung)
-    return rec, inp, {"rung": rung, "rungs": tried, "final_adjustment": final, "object_matches": object_note}
+    reg = {rec.image(i).name for i in rec.reg_image_ids()}
+    matches = {Path(n).stem: k for n, k in verified_matches(database, reg).items()}
+    with heartbeat("cameras: final adjustment of the model"):
+        rec, final, object_note = finish_model(ws, rec, database, inp, cfg, rung)
+    return rec, inp, {"rung": rung, "rungs": tried, "final_adjustment": final, "object_matches": object_note,
+                      "matches": matches}
 
 
 def final_adjustment(cfg: CamerasConfig, rung: str) -> tuple[int, str]:
@@ -108,26 +117,41 @@ def sfm_threads(cfg: CamerasConfig) -> int:
     return 1 if cfg.deterministic else -1
 
 
+def sfm_budget(cfg: CamerasConfig, n_photos: int) -> float:
+    """Seconds the SfM ladder may take for ``n_photos`` photos (``sfm_seconds`` + ``sfm_seconds_per_photo`` each)."""
+    return cfg.sfm_seconds + cfg.sfm_seconds_per_photo * n_photos
+
+
 def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
-    """The SfM ladder: (model as mapped, folder of the images SfM saw, its COLMAP database, the rung's name,
-    summary of the rungs tried)."""
-    inp, groups, _ = prepare_sfm_input(ws, photos, cfg)
+    """The SfM ladder, within its time budget (:func:`sfm_budget`): the first rung always finishes (its mapper stops
+    at the budget's end, or after half the budget when that is later), later rungs run in what is left of it.
+    Returns (model as mapped, folder of the images SfM saw, its COLMAP database, the rung's name, summary of the
+    rungs tried)."""
+    with heartbeat(f"cameras: reading the {len(photos)} photos"):
+        inp, groups, _ = prepare_sfm_input(ws, photos, cfg)
     names = [p.stem for p in photos]
     work = ws.root / "sfm" / "ladder"
     work.mkdir()
+    budget = sfm_budget(cfg, len(names))
+    deadline = time.time() + budget
     tried, best, rejected = [], None, {}
-    for rung in ladder(cfg.start_rung, cfg.last_rung, cfg.max_features, cfg.max_h_inlier_ratio):
+    rungs = ladder(cfg.start_rung, cfg.last_rung, cfg.max_features, cfg.max_h_inlier_ratio, len(names))
+    for step, rung in enumerate(rungs):
         base = None
         if rung.mapper == "extend":  # continue from the best model so far: only when it lacks photos
             if best is None or best[1].num_reg_images() >= len(names):
                 continue
             base = (work / "merge-base", best[3])
-            shutil.rmtree(base[0], ignore_errors=True)
-            base[0].mkdir()
-            best[1].write(base[0])
+            write_model(best[1], base[0])
+        if step > 0 and time.time() > deadline - MIN_RUNG_SECONDS:  # the first rung always runs
+            left = [r.name for r in rungs[step:]]
+            print(f"cameras: the SfM time budget ({budget:.0f} s for {len(names)} photos: cameras.sfm-seconds, "
+                  f"cameras.sfm-seconds-per-photo) is spent; rungs not tried: {', '.join(left)}")
+            tried += [{"rung": r, "skipped": "time budget spent"} for r in left]
+            break
         t0 = time.perf_counter()
         rec, database, secs, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed,
-                                            base, sfm_threads(cfg))
+                                            base, sfm_threads(cfg), deadline, budget / 2 if step == 0 else None)
         dt = time.perf_counter() - t0
         if rec is None or rec.num_reg_images() < 2:
             print(f"cameras: rung {rung.name}: {err or 'no model'} ({dt:.1f} s)")
@@ -143,11 +167,11 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
             continue
         _drop_views(rec, set(bad))
         stats = model_stats(rec, names)
-        short = shortfalls(stats, cfg.max_reprojection_error)
-        dropped = f", dropped {len(bad)} views with wrong poses ({', '.join(sorted(bad)[:4])})" if bad else ""
+        short = shortfalls(stats, cfg.max_reprojection_error, enough_registered=cfg.enough_registered)
+        dropped = f", dropped {len(bad)} views with wrong poses ({names_or_count(sorted(bad))})" if bad else ""
         print(f"cameras: rung {rung.name}: registered {stats['registered']}/{len(names)}, "
               f"{stats['mean_reprojection_error']:.2f} px, track length {stats['mean_track_length']:.2f}"
-              f"{dropped} in {dt:.1f} s → {'; '.join(short) if short else 'complete'}")
+              f"{dropped} in {dt:.1f} s → {'; '.join(short) if short else 'enough to reconstruct from'}")
         tried.append({"rung": rung.name, "seconds": round(dt, 1), **{k: stats[k] for k in ("registered",
                       "mean_reprojection_error", "mean_track_length")}, "dropped": sorted(bad), "steps": secs})
         key = (stats["registered"], -stats["mean_reprojection_error"])
@@ -157,6 +181,25 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
             break
     _require_credible(None if best is None else best[1], rejected, inp, len(names), cfg.min_registered_fraction)
     return best[1], inp, best[3], best[2], tried
+
+
+def verified_matches(database: Path, registered: set[str]) -> dict[str, int]:
+    """Per photo file name (as SfM saw it), its verified inlier matches with the ``registered`` photos, from the COLMAP
+    ``database``'s two-view geometries."""
+    import sqlite3
+
+    con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
+    try:
+        ids = dict(con.execute("select image_id, name from images"))
+        out: dict[str, int] = {}
+        for pair_id, rows in con.execute("select pair_id, rows from two_view_geometries where rows > 0"):
+            a, b = ids.get(pair_id // 2147483647), ids.get(pair_id % 2147483647)
+            for one, other in ((a, b), (b, a)):
+                if one is not None and other in registered:
+                    out[one] = out.get(one, 0) + rows
+    finally:
+        con.close()
+    return out
 
 
 def finish_model(ws: Workspace, rec, database: Path, inp: Path, cfg: CamerasConfig, rung: str):
@@ -187,9 +230,8 @@ def finish_model(ws: Workspace, rec, database: Path, inp: Path, cfg: CamerasConf
     for note in notes + final + ([object_note] if object_note else []):
         print(f"cameras: {note}")
     best_dir = ws.root / "sfm" / "sparse" / "best"
-    best_dir.mkdir(parents=True)
-    adjusted.write(best_dir)
-    shutil.copy(database, ws.root / "sfm" / "database.db")
+    write_model(adjusted, best_dir)  # whole or absent, as every file the stage writes (dvr.atomic)
+    copy_file(database, ws.root / "sfm" / "database.db")
     return adjusted, final, object_note
 
 
@@ -225,17 +267,17 @@ def keep_object_matches(ws: Workspace, rec, database: Path, inp: Path, cfg: Came
 def _require_credible(rec, rejected: dict, inp: Path, n_photos: int, min_fraction: float) -> None:
     """The SfM ladder's failures as a StageError: no model at all (``rec`` None), or, when models were rejected for
     poses that cannot be (``rejected``), a kept model that registers fewer than ``min_fraction`` of the photos."""
-    views = ", ".join(sorted(Path(n).stem for n in rejected)[:8])
+    views = names_or_count(sorted(Path(n).stem for n in rejected), "views")
     if rec is None:
         if rejected:
             raise StageError(f"{inp.parent.parent}: SfM poses are inconsistent for every setting tried (views {views}"
-                             f"{' …' if len(rejected) > 8 else ''}): a symmetric or repetitive object or floor — "
+                             "): a symmetric or repetitive object or floor — "
                              "put a textured mat (a newspaper) under the object, or add texture around it")
         raise StageError(f"{inp}: SfM found no model (too few matches): photograph the object with more overlap "
                          "(≥ 60 % between neighbours), more texture, and sharp, well-lit images")
     if rejected and rec.num_reg_images() < max(3, min_fraction * n_photos):
         raise StageError(f"{inp.parent.parent}: SfM registered {rec.num_reg_images()}/{n_photos} photos with "
-                         f"credible poses; other settings placed views {views}{' …' if len(rejected) > 8 else ''} "
+                         f"credible poses; other settings placed views {views} "
                          "where they cannot be: a symmetric or repetitive object or floor — put a textured mat (a "
                          "newspaper) under the object, or add texture around it")
 

@@ -24,6 +24,7 @@ COLMAP (seen in poselib on a symmetric scene) fails that rung, not the stage.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -33,7 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.cameras.progress import wait_with_progress
+
 RUNG_NAMES = ("default", "guided", "dsp", "relaxed", "global", "merge")
+KILL_GRACE = 15.0
+"""Seconds past its deadline a rung may take to finish (the incremental mapper stops itself at the deadline)."""
 
 
 @dataclass(frozen=True)
@@ -72,9 +77,17 @@ LADDER = (
 )
 
 
-def ladder(start: str, stop: str, max_features: int = 8192, max_h_inlier_ratio: float = 0.8) -> list[Rung]:
+MANY_PHOTOS = 30
+"""Beyond this many photos the later rungs extract fewer features (:func:`ladder`): matching all pairs costs the
+photo count squared times the feature count squared."""
+
+
+def ladder(start: str, stop: str, max_features: int = 8192, max_h_inlier_ratio: float = 0.8,
+           n_photos: int = 0) -> list[Rung]:
     """The rungs from ``start`` to ``stop`` (names of :data:`RUNG_NAMES`), in order; the first rung extracts
-    ``max_features`` features, the others at least twice that and 16 k; every rung verifies its matches with
+    ``max_features`` features, the others at least twice that and 16 k for up to :data:`MANY_PHOTOS` photos, and for
+    ``n_photos`` more that many fewer in proportion (matching them all then costs what it costs for
+    :data:`MANY_PHOTOS`), never fewer than the first rung's; every rung verifies its matches with
     ``max_h_inlier_ratio`` (:class:`Rung`)."""
     for name in (start, stop):
         if name not in RUNG_NAMES:
@@ -85,6 +98,8 @@ def ladder(start: str, stop: str, max_features: int = 8192, max_h_inlier_ratio: 
     if j < i:
         raise ValueError(f"the last SfM rung '{stop}' comes before the first '{start}'")
     more = max(16384, 2 * max_features)
+    if n_photos > MANY_PHOTOS:
+        more = max(max_features, 1024 * round(more * MANY_PHOTOS / n_photos / 1024))
     return [replace(r, max_features=max_features if r.name == "default" else more,
                     max_h_inlier_ratio=max_h_inlier_ratio) for r in LADDER[i : j + 1]]
 
@@ -126,8 +141,11 @@ def match_features(db: Path, n_images: int, rung: Rung, matching: str, seed: int
         pycolmap.match_sequential(db, matching_options=opts, verification_options=verify)
 
 
-def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "", threads: int = -1) -> dict:
-    """Map with the rung's mapper; ``base``: a model folder to continue from (the ``extend`` mapper)."""
+def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "", threads: int = -1,
+         deadline: float | None = None, min_mapping: float = 0.0) -> dict:
+    """Map with the rung's mapper; ``base``: a model folder to continue from (the ``extend`` mapper); ``deadline``
+    (time.time()): the incremental mapper stops there, or after ``min_mapping`` seconds when that is later, and
+    returns the photos it registered so far."""
     from pipeline.colmaplib import pycolmap
 
     if rung.mapper == "global":
@@ -138,6 +156,8 @@ def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = seed
     opts.num_threads = threads
+    if deadline is not None:
+        opts.max_runtime_seconds = max(1, int(max(deadline - time.time(), min_mapping)))
     if rung.relaxed:
         opts.min_model_size = 3
         opts.mapper.init_min_num_inliers = 50
@@ -148,69 +168,87 @@ def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "
 
 
 def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camera_model: str, matching: str,
-              seed: int, base: list[str] | None = None, threads: int = -1) -> None:
+              seed: int, base: list[str] | None = None, threads: int = -1, deadline: float | None = None,
+              min_mapping: float = 0.0) -> None:
     """Child process: features (reused when another rung made them), matches (likewise), mapping; the largest
     model is written to ``work/<rung>/model`` and its timings to ``work/<rung>/result.json``. ``base``: (model
-    folder, its database) to continue from instead (the ``extend`` mapper)."""
+    folder, its database) to continue from instead (the ``extend`` mapper). Features and matches use every core
+    whatever ``threads`` says: each photo's features and each pair's matches come out the same on any number of
+    threads (each pair's RANSAC is seeded alone); ``threads`` is the mapper's."""
     from pipeline.colmaplib import info_to_stderr
 
     info_to_stderr()  # COLMAP's info lines are this rung's log
     r = Rung(**rung)
     work_p, images_p = Path(work), Path(images)
     if base is not None:
-        _map_rung(work_p, images_p, r, Path(base[1]), seed, base[0], {"features": 0.0, "matching": 0.0}, threads)
+        _map_rung(work_p, images_p, r, Path(base[1]), seed, base[0], {"features": 0.0, "matching": 0.0}, threads,
+                  deadline, min_mapping)
         return
     t0 = time.perf_counter()
     feats = work_p / f"features-{r.features_key}.db"
     if not feats.exists():
         tmp = feats.with_suffix(".tmp")
         tmp.unlink(missing_ok=True)
-        _extract(tmp, images_p, groups, r, camera_model, threads=threads)
+        _extract(tmp, images_p, groups, r, camera_model, threads=-1)
         tmp.rename(feats)
     t1 = time.perf_counter()
     db = work_p / f"matches-{r.matches_key}.db"
     if not db.exists():
         tmp = db.with_suffix(".tmp")
         shutil.copy(feats, tmp)
-        match_features(tmp, sum(len(g) for g in groups), r, matching, seed, threads)
+        match_features(tmp, sum(len(g) for g in groups), r, matching, seed, -1)
         tmp.rename(db)
     t2 = time.perf_counter()
     _map_rung(work_p, images_p, r, db, seed, "", {"features": round(t1 - t0, 2), "matching": round(t2 - t1, 2)},
-              threads)
+              threads, deadline, min_mapping)
 
 
 def _map_rung(work: Path, images: Path, r: Rung, db: Path, seed: int, base: str, seconds: dict,
-              threads: int = -1) -> None:
+              threads: int = -1, deadline: float | None = None, min_mapping: float = 0.0) -> None:
     """Mapping of one rung; the largest model goes to ``work/<rung>/model``, the timings to ``result.json``."""
     t0 = time.perf_counter()
     out = work / r.name
     shutil.rmtree(out, ignore_errors=True)
     (out / "models").mkdir(parents=True)
-    recs = _map(db, images, out / "models", r, seed, base, threads)
+    recs = _map(db, images, out / "models", r, seed, base, threads, deadline, min_mapping)
     best = max(recs.values(), key=lambda rec: rec.num_reg_images()) if recs else None
     if best is not None:
         (out / "model").mkdir()
         best.write(out / "model")
     seconds = {**seconds, "mapping": round(time.perf_counter() - t0, 2)}
-    (out / "result.json").write_text(json.dumps({"database": str(db), "seconds": seconds}))
+    from dvr.atomic import write_json
+
+    write_json(out / "result.json", {"database": str(db), "seconds": seconds})  # last, whole: the rung's success
 
 
 def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, camera_model: str, matching: str,
-             seed: int = 0, base: tuple[Path, Path] | None = None, threads: int = -1):
-    """Run one rung in a child process (``python -m pipeline.cameras.sfm``; COLMAP's log goes to ``work/<rung>.log``);
-    ``base``: (model folder, its database) for the ``extend`` mapper to continue from; ``threads``: COLMAP's
-    threads (-1: all cores; 1: the same photos give the same model). Returns (model or None, database path,
-    seconds per step, error or None)."""
+             seed: int = 0, base: tuple[Path, Path] | None = None, threads: int = -1, deadline: float | None = None,
+             min_mapping: float | None = None):
+    """Run one rung in a child process (``python -m pipeline.cameras.sfm``; COLMAP's log goes to ``work/<rung>.log``,
+    a progress line every :data:`~pipeline.cameras.progress.PROGRESS_EVERY` s); ``base``: (model folder, its
+    database) for the ``extend`` mapper to continue from; ``threads``: the mapper's threads (-1: all cores; 1: the
+    same photos give the same model); ``deadline`` (time.time()): the incremental mapper stops there with the photos
+    it registered, and a rung still running :data:`KILL_GRACE` s later is stopped; ``min_mapping`` (seconds): a rung
+    that must give a model (the ladder's first) instead always finishes its features and matches, and its mapper
+    has at least this long. Returns (model or None, database
+    path, seconds per step, error or None)."""
     from pipeline.colmaplib import pycolmap
 
     args = [str(work), str(images), groups, asdict(rung), camera_model, matching, seed,
-            None if base is None else [str(base[0]), str(base[1])], threads]
+            None if base is None else [str(base[0]), str(base[1])], threads, deadline, min_mapping or 0.0]
     log = work / f"{rung.name}.log"
     with open(log, "w") as f:
-        p = subprocess.run([sys.executable, "-m", "pipeline.cameras.sfm", json.dumps(args)], stdout=f,
-                           stderr=subprocess.STDOUT, cwd=Path(__file__).resolve().parents[2])
+        child = [sys.executable, "-m", "pipeline.cameras.sfm", json.dumps(args), str(os.getpid())]  # it ends with us
+        p = subprocess.Popen(child, stdout=f, stderr=subprocess.STDOUT, cwd=Path(__file__).resolve().parents[2])
+        stop_at = None if deadline is None or min_mapping is not None else deadline + KILL_GRACE
+        stopped = wait_with_progress(p, log, rung.name, stop_at)
     res = work / rung.name / "result.json"
+    if stopped:
+        return None, None, {}, "stopped at the end of the SfM time budget (cameras.sfm-seconds)"
     if p.returncode != 0 or not res.exists():
+        from pipeline.colmaplib import raise_if_disk_full
+
+        raise_if_disk_full(log)  # a full disk is the stage's one line, not a reason to climb to the next rung
         why = f"signal {-p.returncode}" if p.returncode < 0 else f"exit code {p.returncode}"
         return None, None, {}, f"COLMAP failed ({why}; see {log})"
     info = json.loads(res.read_text())
@@ -367,10 +405,12 @@ def model_stats(rec, names: list[str]) -> dict:
             "median_points_per_view": float(np.median(per_view)) if per_view else 0.0}
 
 
-def shortfalls(stats: dict, max_error: float = 1.0, min_track: float = 2.5, min_points: int = 50) -> list[str]:
-    """Why a model is short (empty: good enough to stop climbing)."""
+def shortfalls(stats: dict, max_error: float = 1.0, min_track: float = 2.5, min_points: int = 50,
+               enough_registered: float = 1.0) -> list[str]:
+    """Why a model is short (empty: good enough to stop climbing); registering ``enough_registered`` of the photos
+    is enough (the ladder does not climb for the last photo or two)."""
     out = []
-    if stats["registered"] < stats["total"]:
+    if stats["registered"] < enough_registered * stats["total"]:
         out.append(f"{stats['registered']}/{stats['total']} registered")
     if stats["mean_reprojection_error"] > max_error:
         out.append(f"reprojection error {stats['mean_reprojection_error']:.2f} px > {max_error}")
@@ -382,4 +422,7 @@ def shortfalls(stats: dict, max_error: float = 1.0, min_track: float = 2.5, min_
 
 
 if __name__ == "__main__":  # the child process of run_rung
+    from pipeline.lock import end_with_parent
+
+    end_with_parent(int(sys.argv[2]))  # a run killed leaves no rung writing in the workspace the next run holds
     _run_rung(*json.loads(sys.argv[1]))

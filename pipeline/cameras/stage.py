@@ -25,6 +25,7 @@ from pipeline.cameras.export import (
 from pipeline.cameras.mapping import (
     run_sfm,
 )
+from pipeline.cameras.progress import heartbeat
 from pipeline.errors import StageError
 from pipeline.inputs.photos import (
     list_photos,
@@ -84,9 +85,10 @@ def pose_photos(ws: Workspace, photos: list[Path], images: Path, given: Path | N
                 else import_cameras(ws, photos, given, cfg))
     try:
         rec, inp, ladder_info = run_sfm(ws, photos, cfg)
-        info = report_sfm(rec, [p.stem for p in photos], cfg)
+        info = report_sfm(rec, [p.stem for p in photos], cfg, ladder_info.pop("matches"))
         info.update(ladder_info)
-        info.update(export_model(ws, rec, inp, cfg, [p.stem for p in photos]))
+        with heartbeat("cameras: undistorting the photos, the object's sphere"):
+            info.update(export_model(ws, rec, inp, cfg, [p.stem for p in photos]))
         return info
     except StageError as exc:  # SfM cannot pose them (a symmetric object): a printed board in view still can
         return export_board_cameras(ws, photos, cfg, require_board_cameras(photos, cfg, exc), str(exc))

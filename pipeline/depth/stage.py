@@ -14,6 +14,7 @@ import shutil
 import numpy as np
 from PIL import Image
 
+from dvr.atomic import save_npz
 from dvr.cameras import Cameras, load_cameras, plane_height, to_normalized
 from dvr.data import list_images
 from pipeline.depth.config import DepthConfig
@@ -68,7 +69,7 @@ def run(job: Job) -> Done:
             width, height = img.size
         uv, dep, conf = _view_depths(rec, im, (width / cam.width, height / cam.height),
                                      cams.centers[v], cams, cfg)
-        np.savez(ws.depth / f"{p.stem}.npz", uv=uv, depth=dep, confidence=conf)
+        save_npz(ws.depth / f"{p.stem}.npz", uv=uv, depth=dep, confidence=conf)
         total += len(dep)
     print(f"depth: {total} sparse depths in {len(paths)} views → {ws.depth}")
     return Done({"points": total})

@@ -9,13 +9,12 @@ clip itself is only read. Frames are turned upright as the clip's rotation tag s
 
 from __future__ import annotations
 
-import json
-import shutil
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from dvr.atomic import atomic_path, write_image, write_json
 from pipeline.errors import StageError
 from pipeline.inputs.photos import downscale
 
@@ -78,19 +77,15 @@ def extract_frames(video: Path, out: Path, n: int, max_side: int) -> dict:
         raise StageError(f"{video}: {len(scores)} frame(s) could be read; at least 3 are needed (a clip walking "
                          "once around the object is typical)")
     chosen = choose_frames(scores, n)
-    tmp = out.with_name(out.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
     wanted = dict(zip(chosen, range(len(chosen))))
     taken = []
-    for k, frame in _frames(_open(video)):
-        if k in wanted:
-            name = f"frame{wanted[k]:04d}.jpg"
-            cv2.imwrite(str(tmp / name), downscale(frame, max_side), [cv2.IMWRITE_JPEG_QUALITY, 95])
-            taken.append({"file": name, "frame": k, "seconds": round(k / fps, 3) if fps > 0 else None,
-                          "sharpness": round(float(scores[k]), 2)})
-    record = {"video": str(video), "frames_in_clip": int(len(scores)), "chosen": taken}
-    (tmp / "frames.json").write_text(json.dumps(record, indent=1))
-    shutil.rmtree(out, ignore_errors=True)
-    tmp.rename(out)
+    with atomic_path(out, folder=True) as tmp:
+        for k, frame in _frames(_open(video)):
+            if k in wanted:
+                name = f"frame{wanted[k]:04d}.jpg"
+                write_image(tmp / name, downscale(frame, max_side), [cv2.IMWRITE_JPEG_QUALITY, 95])
+                taken.append({"file": name, "frame": k, "seconds": round(k / fps, 3) if fps > 0 else None,
+                              "sharpness": round(float(scores[k]), 2)})
+        record = {"video": str(video), "frames_in_clip": int(len(scores)), "chosen": taken}
+        write_json(tmp / "frames.json", record, indent=1)
     return record

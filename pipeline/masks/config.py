@@ -53,5 +53,7 @@ class MasksConfig:
     """Footprint from the visual hull: its cells higher than this above the floor (unit-sphere radii); 0: off."""
     footprint_union: bool = True
     """Hard background only beyond both the points' footprint and the hull's; off: beyond the points' alone."""
+    saliency: bool = False
+    """Start GrabCut from a salient-object model's guess where the geometry is undecided; the views' vote decides."""
     speck_fraction: float = 0.001
     """Automatic masks: fill holes and drop islands smaller than this fraction of the image."""

@@ -27,7 +27,6 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import sys
@@ -38,12 +37,15 @@ import cv2
 import numpy as np
 import torch
 
+from dvr.atomic import write_image, write_json
 from dvr.cameras import Cameras, load_cameras, plane_height, project_points, sphere_bounds, to_normalized
 from dvr.data import list_images, pad_stack, read_mask
 from dvr.hull import grid_points, hull_logits, mask_lookup
 from pipeline.errors import StageError
 from pipeline.masks.config import MasksConfig
+from pipeline.masks.saliency import evidence, first_labels, vote_prior
 from pipeline.masks.stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
+from pipeline.messages import names_or_count
 from pipeline.readers import read_stage_model
 from pipeline.render.raycast import MeshCaster, pixel_center_rays
 from pipeline.scene.exposure import even_out, read_exposure
@@ -339,8 +341,8 @@ def background_depths(cams: Cameras, pts_n: np.ndarray | None, obs: dict | None,
     return far
 
 
-def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray],
-               cfg: MasksConfig) -> tuple[dict, str | bool | None, list[float]]:
+def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig,
+               sal: list[np.ndarray] | None = None) -> tuple[dict, str | bool | None, list[float]]:
     """Automatic masks of the BGR images ``imgs`` (module docstring: geometric and stereo seeds, GrabCut, multi-view
     votes) into masks/; per name the confidence (IoU of the first GrabCut mask with the hull's silhouette), where
     the object's footprint that seeded the floor came from: "sparse points", "masks' hull", False (none could be
@@ -382,8 +384,10 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray],
             lab[bg] = cv2.GC_BGD
             lab[bg & support_in_sphere(cams, i, h, w)] = cv2.GC_PR_BGD
         seeds.append(lab)
+    # saliency moves only the first pass' probable labels: the seeds the vote rounds keep are the geometry's
+    starts = seeds if sal is None else [first_labels(lab.copy(), s) for lab, s in zip(seeds, sal)]
     first = [remove_specks(m, cfg.speck_fraction)
-             for m in grabcut_all(imgs, seeds, cfg.grabcut_iters, cfg.grabcut_margin)]
+             for m in grabcut_all(imgs, starts, cfg.grabcut_iters, cfg.grabcut_margin)]
     first_hull = None  # built once when the footprint and the first vote both need it
     # the footprint of the first masks' hull: alone (too few points), or united with the points' prism
     if (used is False or unite) and cfg.footprint_hull_height > 0:
@@ -399,16 +403,17 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray],
                                else "the first masks' hull stands nowhere above the plane: no footprint"))
         for i, img in enumerate(imgs if footprint is not None else []):  # hard background seeds for the vote rounds
             seeds[i][~object_region(cams, i, img.shape[0], img.shape[1], footprint)] = cv2.GC_BGD
-    current, sil, _ = vote(imgs, seeds, first, cams, cfg, max(1, cfg.vote_rounds), first_hull=first_hull)
+    current, sil, _ = vote(imgs, seeds, first, cams, cfg, max(1, cfg.vote_rounds), first_hull=first_hull, sal=sal)
     changed = []
     if cams.ground is not None and cfg.floor_rounds > 0:
         low = [low_band(cams, i, m.shape[0], m.shape[1], cfg.floor_band) for i, m in enumerate(current)]
-        current, sil, changed = vote(imgs, seeds, current, cams, cfg, cfg.floor_rounds, cfg.floor_settle, low)
+        current, sil, changed = vote(imgs, seeds, current, cams, cfg, cfg.floor_rounds, cfg.floor_settle, low,
+                                     sal=sal)
         print(f"masks: {len(changed)} floor rounds under the object; each changed "
               + ", ".join(f"{c:.2%}" for c in changed) + " of the object's pixels")
     conf = {}
     for i, n in enumerate(names):
-        cv2.imwrite(str(ws.masks / f"{n}.png"), current[i].astype(np.uint8) * 255)
+        write_image(ws.masks / f"{n}.png", current[i].astype(np.uint8) * 255)
         inter = (first[i] & sil[i]).sum()
         union = (first[i] | sil[i]).sum()
         conf[n] = float(inter / union) if union else 0.0
@@ -443,7 +448,8 @@ def vote_labels(seed: np.ndarray, sil: np.ndarray, kernel: np.ndarray) -> np.nda
 
 def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray], cams: Cameras, cfg: MasksConfig,
          rounds: int, settle: float = 0.0, region: list[np.ndarray] | None = None,
-         first_hull: torch.Tensor | None = None) -> tuple[list[np.ndarray], list[np.ndarray], list[float]]:
+         first_hull: torch.Tensor | None = None, sal: list[np.ndarray] | None = None
+         ) -> tuple[list[np.ndarray], list[np.ndarray], list[float]]:
     """Multi-view vote rounds from the masks ``start``: the hull of the current masks (carving needs
     ``carve_min_views``; ``first_hull``: that of ``start`` when already built) is an upper bound in every view
     (:func:`vote_labels`) and GrabCut refines inside it, ``rounds`` times or until a round changes fewer than
@@ -454,6 +460,8 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
     for rnd in range(rounds):
         sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views, first_hull if rnd == 0 else None)
         labs = [vote_labels(seeds[i], sil[i], kernel) for i in range(len(imgs))]
+        if sal is not None:  # a probable start inside the hull's bound, never past it
+            labs = [vote_prior(lab, s) for lab, s in zip(labs, sal)]
         if region is None:
             new = grabcut_all(imgs, labs, cfg.grabcut_iters, cfg.grabcut_margin)
         else:  # GrabCut on the box of the region's undecided pixels, the rest of that box fixed as it is
@@ -520,7 +528,7 @@ def write_overlays(ws: Workspace, names: list[str], imgs: list[np.ndarray], cams
         line = support_outline(cams, i) if cams is not None else None
         if line is not None:
             cv2.polylines(ov, [np.round(line * 16).astype(np.int32)], False, (0, 165, 255), 1, cv2.LINE_AA, shift=4)
-        cv2.imwrite(str(out / f"{n}.jpg"), ov, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        write_image(out / f"{n}.jpg", ov, [cv2.IMWRITE_JPEG_QUALITY, 90])
 
 
 def run(job: Job) -> Done:
@@ -536,19 +544,22 @@ def run(job: Job) -> Done:
     if ws.masks.exists():
         shutil.rmtree(ws.masks)
     ws.masks.mkdir(parents=True)
-    footprint = None
+    footprint, sal = None, None
     if user is not None:
         for n, m in user.items():
-            cv2.imwrite(str(ws.masks / f"{n}.png"), m.astype(np.uint8) * 255)
+            write_image(ws.masks / f"{n}.png", m.astype(np.uint8) * 255)
         conf, rounds = dict.fromkeys(user, 1.0), []
     else:
-        conf, footprint, rounds = auto_masks(ws, names, imgs, cfg)
+        sal = evidence(imgs) if cfg.saliency else None
+        conf, footprint, rounds = auto_masks(ws, names, imgs, cfg, sal)
     write_overlays(ws, names, imgs, load_cameras(ws.cameras, n_views=len(names)))
-    (ws.masks / "confidence.json").write_text(json.dumps(conf, indent=1))
+    write_json(ws.masks / "confidence.json", conf, indent=1)
     low = [n for n, c in conf.items() if c < 0.8]
     if low:
-        print(f"masks: low confidence for {', '.join(low)} (see {ws.masks / 'overlays'})", file=sys.stderr)
+        print(f"masks: low confidence for {names_or_count(low, 'of the ' + str(len(names)) + ' photos')}; look at "
+              f"{ws.masks / 'overlays'}", file=sys.stderr)
     print(f"masks: {len(names)} masks, mean confidence {np.mean(list(conf.values())):.3f} → {ws.masks}")
     return Done({"mean_confidence": float(np.mean(list(conf.values()))), "footprint": footprint,
+                 "saliency": sal is not None,
                  "floor_rounds_changed": [round(c, 6) for c in rounds]})
 

@@ -6,6 +6,7 @@ import numpy as np
 import torch
 import trimesh
 
+from dvr.atomic import export_mesh
 from dvr.cameras import transform_points
 from dvr.device import resolve_device
 from dvr.extract import extract_mesh
@@ -156,7 +157,7 @@ def sfm_points(path, scale_mat: np.ndarray) -> np.ndarray | None:
 def _export(path, verts, faces, colors, scale_mat, to_normalized, frame):
     m = trimesh.Trimesh(verts, faces, vertex_colors=colors, process=False)
     m.apply_transform(scale_mat if frame == "sfm" else to_normalized)
-    m.export(path)
+    export_mesh(path, m)  # whole or absent (dvr.atomic)
 
 
 def run(job: Job) -> Done:

@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dvr.atomic import atomic_file, write_image, write_text
 from pipeline.workspace import Done, Job, Workspace
 
 VIEWER_JS = Path(__file__).resolve().parents[2] / "node_modules" / "@google" / "model-viewer" / "dist" / \
@@ -53,7 +54,13 @@ def curves(log: Path, out: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rec = [json.loads(x) for x in log.read_text().splitlines() if x.strip()]
+    rec = []
+    for line in log.read_text(errors="replace").splitlines():
+        try:
+            rec.append(json.loads(line))
+        except ValueError:  # a line a kill cut short (the trainer drops it when it resumes)
+            continue
+    rec = [r for r in rec if isinstance(r, dict) and "step" in r]
     if not rec:
         return None
     step = [r["step"] for r in rec]
@@ -70,7 +77,8 @@ def curves(log: Path, out: Path) -> Path | None:
     ax[1].set_xlabel("step")
     ax[1].set_title("training PSNR (dB)")
     fig.tight_layout()
-    fig.savefig(out, dpi=100)
+    with atomic_file(out) as f:
+        fig.savefig(f, format="png", dpi=100)
     plt.close(fig)
     return out
 
@@ -110,7 +118,7 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
             p = masked_psnr(img, photo, m)
             pair = (np.concatenate([photo, img], 1) * 255).round().astype(np.uint8)
             if out_dir is not None:
-                cv2.imwrite(str(out_dir / f"render_{tag.replace('-', '')}_{paths[i].stem}.png"),
+                write_image(out_dir / f"render_{tag.replace('-', '')}_{paths[i].stem}.png",
                             cv2.cvtColor(pair, cv2.COLOR_RGB2BGR))
             out.append((f"{tag} {paths[i].stem}", _png_b64(pair), p))
         if tag == "held-out":
@@ -313,7 +321,7 @@ def run(job: Job) -> Done:
     stats: dict = {}
     doc = build(job.ws, job.stage_order, stats)
     out = job.ws.root / "report.html"
-    out.write_text(doc)
+    write_text(out, doc)
     print(f"report: {out} ({len(doc) / 1e6:.1f} MB)")
     return Done(stats)
 

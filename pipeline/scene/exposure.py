@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dvr.atomic import write_json
 from pipeline.errors import StageError
 
 DARK, BRIGHT = 0.04, 0.96
@@ -140,9 +141,9 @@ def even_out(img: np.ndarray, gain: np.ndarray) -> np.ndarray:
 
 def write_exposure(path: Path, est: ExposureEstimate) -> None:
     """``est`` as JSON: per photo stem its gains and the observations that measured them."""
-    path.write_text(json.dumps({"views": {n: {"gain": [round(float(x), 5) for x in g], "points": int(k)}
-                                          for n, g, k in zip(est.names, est.gains, est.points)},
-                                "spread": round(est.spread(), 5)}, indent=1))
+    write_json(path, {"views": {n: {"gain": [round(float(x), 5) for x in g], "points": int(k)}
+                                for n, g, k in zip(est.names, est.gains, est.points)},
+                      "spread": round(est.spread(), 5)}, indent=1)
 
 
 def read_exposure(path: Path, names: list[str] | None = None) -> ExposureEstimate:

@@ -1,8 +1,9 @@
-"""The support surface: the floor, table or turntable the object stands on, found in the SfM points.
+"""The support surface: the floor, table or turntable the object stands on, or the wall it hangs on or the
+backdrop it leans on, found in the SfM points.
 
 Every object people photograph rests on something, and that something is textured, runs beyond the frame and
 touches the object inside its bounding sphere: left alone, the masks, the sphere and the mesh take it for part
-of the object. The support is found as the plane that
+of the object. The support is looked for first as a floor, the plane that
 
 * holds the most sparse points (RANSAC, then a least-squares refit on its inliers), at least ``min_inliers`` and
   ``min_fraction`` of the points around the object,
@@ -18,8 +19,18 @@ of the object. The support is found as the plane that
   that of the object's own points) — a plane tangent to the object's rounded bottom holds only a small cap of its
   points.
 
-No such plane (an object held, hung, on a plain backdrop or a plain turntable top): ``None``, and every stage
-behaves as without a support.
+Without such a floor, the support is looked for in any direction (``backing``): the plane on the far side of the
+object from the cameras — a wall a mounted head hangs on, a backdrop a plate leans on —, through points behind
+where the cameras converge, its normal within ``BACKING_MAX_ANGLE_DEG`` of the mean direction to the cameras, with
+every check above in its own direction ("above" is "in front of", "below" is "behind"), and one more: the object
+touches it (:func:`_touches`: the points nearest the plane between it and the convergence point lie within
+``max_gap`` × the convergence point's height), so that a backdrop some way behind an object, with empty space
+between them, is never taken. A floor, when there is one, is
+the support: the object stands on it and the wall behind it stays the background the masks find by colour.
+
+No such plane (an object held, on a plain backdrop or a plain turntable top): ``None``, and every stage behaves as
+without a support. Every stage reads the plane only through its normal (towards the cameras) and offset: the plane
+and everything behind it are background, whichever way it faces.
 """
 
 from __future__ import annotations
@@ -117,39 +128,47 @@ def _below_margin(far_height: np.ndarray, tol: float) -> float:
 
 
 def _ransac(near: np.ndarray, up: np.ndarray, tol: float, max_tilt_deg: float, iterations: int, seed: int,
-            plausible, pool: np.ndarray | None = None) -> tuple[tuple[np.ndarray, float] | None, int]:
-    """The roughly horizontal plane with the most inliers among those ``plausible(n, d)`` accepts; candidate
-    planes through three points of ``pool`` (default: ``near``), inliers counted in ``near``."""
+            plausible, pool: np.ndarray | None = None, min_count: float = 0
+            ) -> tuple[tuple[np.ndarray, float] | None, int]:
+    """The plane with the most inliers (the first drawn of equals) among those ``plausible(n, d)`` accepts whose
+    normal (signed towards ``up``) lies within ``max_tilt_deg`` of ``up``; candidate planes through three points of
+    ``pool`` (default: ``near``), inliers counted in ``near`` (all candidates at once, in blocks), ``plausible`` asked
+    from the most inliers down, of candidates with at least ``min_count`` (None, 0 when none is)."""
     rng = np.random.default_rng(seed)
-    cos_tilt = np.cos(np.radians(max_tilt_deg))
     pool = near if pool is None or len(pool) < 3 else pool
-    best, best_count = None, 0
-    for _ in range(iterations):
-        a, b, c = pool[rng.choice(len(pool), 3, replace=False)]
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n)
-        if norm < 1e-12:
-            continue
-        n = n / norm if n @ up >= 0 else -n / norm
-        if n @ up < cos_tilt:
-            continue
-        d = -float(n @ a)
-        count = int((np.abs(near @ n + d) < tol).sum())
-        if count > best_count and plausible(n, d):
-            best, best_count = (n, d), count
-    return best, best_count
+    a, b, c = pool[np.stack([rng.choice(len(pool), 3, replace=False) for _ in range(iterations)])].transpose(1, 0, 2)
+    n = np.cross(b - a, c - a)
+    norm = np.linalg.norm(n, axis=1)
+    keep = norm >= 1e-12
+    n = n[keep] / norm[keep, None]
+    n *= np.where(n @ up >= 0, 1.0, -1.0)[:, None]
+    tilt_ok = n @ up >= np.cos(np.radians(max_tilt_deg))
+    n, a = n[tilt_ok], a[keep][tilt_ok]
+    d = -np.einsum("ij,ij->i", n, a)
+    block = max(1, 4_000_000 // max(len(near), 1))
+    counts = np.concatenate([(np.abs(near @ n[s:s + block].T + d[s:s + block]) < tol).sum(0)
+                             for s in range(0, len(n), block)]) if len(n) else np.zeros(0, int)
+    for k in np.argsort(-counts, kind="stable"):
+        if counts[k] < max(min_count, 1):
+            break
+        if plausible(n[k], float(d[k])):
+            return (n[k], float(d[k])), int(counts[k])
+    return None, 0
 
 
 def find_support(points: np.ndarray, centers: np.ndarray, R: np.ndarray, target: np.ndarray,
                  tolerance: float = 0.01, max_tilt_deg: float = 15.0, min_cameras_above: float = 0.9,
                  max_height: float = 0.8, min_inliers: int = 30, min_fraction: float = 0.05, min_sectors: int = 3,
-                 max_below: float = 0.01, iterations: int = 10000, seed: int = 0) -> SupportPlane | None:
+                 max_below: float = 0.01, iterations: int = 10000, seed: int = 0, backing: bool = True,
+                 max_gap: float = 0.25) -> SupportPlane | None:
     """The support plane of an object-centric capture (see the module), or None.
 
     Args:
         points: sparse SfM points (M, 3); centers: camera centres (N, 3); R: world→camera rotations (N, 3, 3);
         target: the point the cameras converge on.
         tolerance: inlier distance as a fraction of the median camera distance to ``target``.
+        backing: without a floor, look for a plane in any direction the object touches on its far side.
+        max_gap: a backing plane's largest gap to the object, as a fraction of the convergence point's height.
     """
     if len(points) < min_inliers or len(centers) < 3:
         return None
@@ -165,30 +184,65 @@ def find_support(points: np.ndarray, centers: np.ndarray, R: np.ndarray, target:
         return _plausible(n, d, near, centers, target, scale, tol, min_cameras_above, max_height, max_below)
 
     min_count = max(min_inliers, min_fraction * len(near))
+
+    def checked(best, count, side, touching):
+        """The candidate plane ``best`` refitted on its inliers (its normal on the ``side`` of the cameras) as a
+        SupportPlane when it passes every check, else None; ``touching``: the object must reach it."""
+        if best is None or count < min_count:
+            return None
+        n, d = best
+        for _ in range(3):  # refit on the inliers
+            n, d = _fit(near[np.abs(near @ n + d) < tol])
+            if n @ side < 0:
+                n, d = -n, -d
+        inl = near[np.abs(near @ n + d) < tol]
+        if len(inl) < min_count or not plausible(n, d):
+            return None
+        foot = target - float(target @ n + d) * n
+        obj = object_points(points, n, d, target, scale, tol)
+        flat = obj - np.outer(obj @ n + d, n) - foot  # the object's points dropped onto the plane, from the foot
+        footprint = float(np.median(np.linalg.norm(flat, axis=1))) if len(obj) >= 5 else 0.0
+        # it lies around the object on several sides (a shelf behind it does not), and spreads at least as wide as
+        # the object stands (a plane tangent to the object's own rounded bottom holds a small cap of its points)
+        spread = float(np.median(np.linalg.norm(inl - foot, axis=1)))
+        if _sectors(inl, foot, n, 0.0, max(2.5 * footprint, 0.25 * scale)) < min_sectors or spread < 0.6 * footprint:
+            return None
+        if touching and not _touches(near, n, d, target, tol, max_gap):
+            return None
+        return SupportPlane(n, d, int(len(inl)), tol, object_height(obj, n, d, target))
+
     # candidates through points below where the cameras converge (the support is below the object): on DTU the
     # table holds 10 % of the points, and 2000 triples from all of them found it in one SfM run and not the next
     below = near[(near - target) @ up < 0]
-    best, count = _ransac(near, up, tol, max_tilt_deg, iterations, seed, plausible, pool=below)
-    if best is None or count < min_count:
-        return None
-    n, d = best
-    for _ in range(3):  # refit on the inliers
-        n, d = _fit(near[np.abs(near @ n + d) < tol])
-        if n @ up < 0:
-            n, d = -n, -d
-    inl = near[np.abs(near @ n + d) < tol]
-    if len(inl) < min_count or not plausible(n, d):
-        return None
-    foot = target - float(target @ n + d) * n
-    obj = object_points(points, n, d, target, scale, tol)
-    flat = obj - np.outer(obj @ n + d, n) - foot  # the object's points dropped onto the plane, from the foot
-    footprint = float(np.median(np.linalg.norm(flat, axis=1))) if len(obj) >= 5 else 0.0
-    # it lies around the object on several sides (a shelf behind it does not), and spreads at least as wide as the
-    # object stands (a plane tangent to the object's own rounded bottom holds a small cap of its points)
-    spread = float(np.median(np.linalg.norm(inl - foot, axis=1)))
-    if _sectors(inl, foot, n, 0.0, max(2.5 * footprint, 0.25 * scale)) < min_sectors or spread < 0.6 * footprint:
-        return None
-    return SupportPlane(n, d, int(len(inl)), tol, object_height(obj, n, d, target))
+    floor = checked(*_ransac(near, up, tol, max_tilt_deg, iterations, seed, plausible, below, min_count), up, False)
+    if floor is not None or not backing:
+        return floor
+    # no floor: a plane in any direction that the object touches on its far side from the cameras (a wall it hangs
+    # on, a backdrop it leans on), through points behind where the cameras converge
+    front = np.mean((centers - target) / np.linalg.norm(centers - target, axis=1, keepdims=True), axis=0)
+    front /= max(float(np.linalg.norm(front)), 1e-12)
+    behind = near[(near - target) @ front < 0]
+    found = _ransac(near, front, tol, BACKING_MAX_ANGLE_DEG, iterations, seed, plausible, behind, min_count)
+    return checked(*found, front, True)
+
+
+BACKING_MAX_ANGLE_DEG = 80.0
+"""Largest angle between a backing plane's normal and the mean direction from the object to the cameras (every
+camera must be in front of it besides)."""
+
+
+def _touches(points: np.ndarray, n: np.ndarray, d: float, target: np.ndarray, tol: float, max_gap: float) -> bool:
+    """Whether the object the cameras converge on (at ``target``) reaches the plane n·x + d = 0: of the points
+    between the plane and the target (more than 2 ``tol`` in front of the plane, within the target's height of the
+    axis through it), the nearest to the plane (the 5th percentile of their heights) lie within ``max_gap`` × the
+    target's height. A backdrop some way behind an object leaves empty space there; a wall the object hangs on
+    does not (its few points near the wall, a mounting plate or a neck, are enough). Fewer than 5 such points: no
+    sign of contact, False."""
+    h_target = float(target @ n + d)
+    h = points @ n + d
+    radial = np.linalg.norm(points - target - np.outer(h - h_target, n), axis=1)
+    between = h[(h > 2 * tol) & (h < h_target) & (radial < h_target)]
+    return len(between) >= 5 and float(np.percentile(between, 5)) <= max_gap * h_target
 
 
 def object_points(points: np.ndarray, n: np.ndarray, d: float, target: np.ndarray, scale: float,

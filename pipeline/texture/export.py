@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from dvr.atomic import atomic_file, export_mesh, write_text
 from pipeline.errors import StageError
 from pipeline.readers import load_mesh_file
 
@@ -50,7 +51,16 @@ def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np
     from PIL import Image
 
     img = Image.fromarray((tex.clip(0, 1) * 255).round().astype(np.uint8))
-    png = threading.Thread(target=img.save, args=(out_dir / "textured.png",))
+    png_error: list[BaseException] = []
+
+    def write_png():
+        try:
+            with atomic_file(out_dir / "textured.png") as f:
+                img.save(f, format="PNG")
+        except BaseException as exc:  # noqa: BLE001 - raised below, in the caller's thread (a full disk)
+            png_error.append(exc)
+
+    png = threading.Thread(target=write_png)
     png.start()
     try:
         mat = trimesh.visual.material.PBRMaterial(baseColorTexture=img, metallicFactor=0.0, roughnessFactor=1.0)
@@ -59,7 +69,7 @@ def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np
         scene = trimesh.Scene()
         scene.add_geometry(mesh, node_name="object", geom_name="textured",
                            transform=np.eye(4) if display is None else display)
-        scene.export(out_dir / "textured.glb", tree_postprocessor=clamped_textures)
+        export_mesh(out_dir / "textured.glb", scene, tree_postprocessor=clamped_textures)
         simple = trimesh.visual.material.SimpleMaterial(name="textured", diffuse=(255, 255, 255, 255),
                                                         ambient=(255, 255, 255, 255), specular=(0, 0, 0, 255))
         mesh_obj = trimesh.Trimesh(verts, faces, visual=trimesh.visual.TextureVisuals(uv=uvs, material=simple),
@@ -67,7 +77,9 @@ def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np
         text, files = trimesh.exchange.obj.export_obj(mesh_obj, include_texture=True, return_texture=True,
                                                       mtl_name="textured.mtl")
         mtl = next(data.decode() for name, data in files.items() if name.endswith(".mtl"))
-        (out_dir / "textured.mtl").write_text(mtl + "\nmap_Kd textured.png")  # the material's texture: textured.png
-        (out_dir / "textured.obj").write_text(text)
+        write_text(out_dir / "textured.mtl", mtl + "\nmap_Kd textured.png")  # the material's texture: textured.png
+        write_text(out_dir / "textured.obj", text)
     finally:
         png.join()
+    if png_error:
+        raise png_error[0]

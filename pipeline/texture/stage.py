@@ -146,15 +146,17 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
 def upright(cams: Cameras, frame: str) -> tuple[np.ndarray, str]:
     """(T, source): T the 4×4 rigid transform from the mesh's ``frame`` ('sfm' or 'normalized') to glTF's display
     frame, ``source`` where its up came from ('support plane' or 'cameras'). +Y is up — the support plane's normal
-    (a printed board's z) or, floating, the capture's up (:func:`pipeline.scene.support.capture_up`); +Z points level at
-    the first photo's camera (a viewer's default view then looks from there); the origin is the object's sphere
-    centre, dropped onto the support plane when there is one. SfM's frame has no up of its own (COLMAP's is its
-    first camera's, y down), and viewers put glTF's +Y up, so without this the object opened upside down or
-    tilted."""
+    (a printed board's z) when it is a floor (within 45° of the capture's up line: the up's sign is unsure when
+    portrait and landscape photos mix, their −y axes cancelling), else (floating, or hung on a wall) the capture's
+    up (:func:`pipeline.scene.support.capture_up`); +Z points level at the first photo's camera (a
+    viewer's default view then looks from there); the origin is the object's sphere centre, dropped onto the floor
+    when there is one. SfM's frame has no up of its own (COLMAP's is its first camera's, y down), and viewers put
+    glTF's +Y up, so without this the object opened upside down or tilted."""
     from pipeline.scene.support import capture_up
 
-    if cams.ground is not None:
-        up, source = np.asarray(cams.ground[:3], float), "support plane"
+    normal = None if cams.ground is None else np.asarray(cams.ground[:3], float)
+    if normal is not None and abs(normal @ capture_up(cams.R)) >= np.cos(np.pi / 4) * np.linalg.norm(normal):
+        up, source = normal, "support plane"
         origin = -float(cams.ground[3]) * up / float(up @ up)  # the sphere centre (0) dropped onto the plane
     else:
         up, source, origin = capture_up(cams.R), "cameras", np.zeros(3)

@@ -7,6 +7,7 @@ import shutil
 import time
 from dataclasses import asdict, replace
 
+from dvr.atomic import write_json
 from dvr.config import TrainConfig
 from dvr.data import list_images, load_scene
 from dvr.device import resolve_device
@@ -30,8 +31,8 @@ def _fresh_or_resume(job: Job) -> None:
         # another config, or new masks / images / cameras: that checkpoint is not ours to resume
         shutil.rmtree(ws.model, ignore_errors=True)
     ws.model.mkdir(parents=True, exist_ok=True)
-    cfg_file.write_text(json.dumps({"hash": job.config_hash, "inputs_time": inputs_time, "config": asdict(job.cfg)},
-                                   indent=1, default=str))
+    write_json(cfg_file, {"hash": job.config_hash, "inputs_time": inputs_time, "config": asdict(job.cfg)}, indent=1,
+               default=str)
 
 
 def run(job: Job) -> Done | None:

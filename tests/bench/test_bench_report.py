@@ -39,3 +39,17 @@ def test_a_finding_with_one_side_of_older_defaults_is_marked():
     assert len(marked) == 1 and "from photos †, without / with it:" in marked[0]
     fresh = ablation_findings([{**knob, "defaults": DEFAULTS_VERSION}], [base, {**knob, "defaults": DEFAULTS_VERSION}])
     assert len(fresh) == 1 and "†" not in fresh[0]
+
+
+def test_real_captures_table_gives_each_stages_seconds_and_where_it_ran():
+    from bench.report import real_table
+
+    secs = {"cameras": 150.0, "masks": 40.0, "depth": 1.0, "train": 90.0, "mesh": 9.0, "texture": 14.0}
+    rows = [{"scene": "blowtorch", "cameras": "sfm", "preset": "default", "registered": "66/67", "seconds": secs,
+             "mask_iou": 0.951, "psnr": 20.5, "psnr_gain_fit": 22.25, "machine": {"model": "Xeon", "cores": 2}},
+            {"scene": "mouse", "cameras": "sfm", "preset": "default", "knob": "x", "registered": "1/59"},
+            {"scene": "cow", "cameras": "sfm", "preset": "default", "registered": "20/20"}]
+    text = real_table(rows).splitlines()
+    assert len(text) == 5 and "66/67 | 150 | 40 | 1 | 90 | 9 | 14 | 304 | 0.951 | 20.50 (22.25) |" in text[2]
+    assert text[-1] == "Measured on Xeon, 2 cores (rows without a machine: the bench's)."
+    assert real_table(rows[1:]) == ""  # a knob's row and a synthetic scene are no real-capture rows

@@ -396,3 +396,18 @@ def test_the_train_stage_says_and_records_its_framing_choice(small_ws, capsys):
     assert report_framing(cfg, data) == {"framing": "on", "min_framing_views": 5, "cut_views": 8, "auto": True}
     assert "5 photos must frame a point to be object (auto: the object reaches the frame's edge in 8 of 8 photos, " \
         "more than 50 %)" in capsys.readouterr().out
+
+
+def test_a_resumed_log_keeps_its_steps_once_and_no_line_cut_short(small_ws, tmp_path):
+    """A kill after the checkpoint of step 2 but after the log's line of step 3, in the middle of writing step 4's:
+    the resumed run logs steps 3 and 4 again; its log holds each step once and no line the kill cut short (the
+    report's curves read it)."""
+    cfg = tiny_cfg(iterations=4, checkpoint_every=2, log_every=1)
+    data = load_scene(small_ws, torch.device("cpu"))
+    train(cfg, data, tmp_path, stop_after=3)
+    log = tmp_path / "log.jsonl"
+    log.write_text(log.read_text() + '{"step": 4, "loss": 0.')
+    t = Trainer(cfg, data, tmp_path)
+    assert t.try_resume() and t.step == 2
+    t.fit()
+    assert [json.loads(x)["step"] for x in log.read_text().splitlines()] == [1, 2, 3, 4]

@@ -47,3 +47,46 @@ def test_colmap_writes_no_log_files_and_keeps_info_lines_off_the_terminal(tmp_pa
     assert "warning-line" in run.stderr and "Need at least one registered frame" in run.stderr  # COLMAP's error
     assert "info-in-a-child" in run.stderr
     assert list(temp.iterdir()) == []
+
+
+def test_a_model_cut_short_by_a_full_disk_is_said(tmp_path, monkeypatch):
+    """COLMAP's model writer leaves its files cut short when the disk fills, and says nothing (reading them back is
+    no check: a count read from the cut has its reader allocate gigabytes): a model written where no space is left
+    is a full disk, and the model already there stays as it was."""
+    import shutil
+    from collections import namedtuple
+
+    import numpy as np
+
+    from dvr import atomic
+    from pipeline.colmaplib import pycolmap, write_model
+
+    rec = pycolmap.Reconstruction()
+    for _ in range(20):
+        rec.add_point3D(np.random.default_rng(0).random(3), pycolmap.Track(), np.zeros(3, np.uint8))
+    write_model(rec, tmp_path / "best")
+    assert pycolmap.Reconstruction(tmp_path / "best").num_points3D() == 20
+    before = {p.name: p.read_bytes() for p in (tmp_path / "best").iterdir()}
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(atomic.shutil, "disk_usage", lambda path: usage(1 << 30, 1 << 30, 4096))
+    with pytest.raises(atomic.DiskFull, match="best"):
+        write_model(pycolmap.Reconstruction(), tmp_path / "best")
+    monkeypatch.setattr(atomic.shutil, "disk_usage", shutil.disk_usage)
+    assert {p.name: p.read_bytes() for p in (tmp_path / "best").iterdir()} == before
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["best"]
+
+
+def test_colmaps_full_disk_is_the_stages_not_the_next_rungs(tmp_path):
+    """A rung's child that failed because the disk filled (SQLite's words in its log) is the stage's full disk: the
+    ladder does not climb on to the next rung, which needs the disk too."""
+    import errno
+
+    from pipeline.colmaplib import raise_if_disk_full
+
+    log = tmp_path / "default.log"
+    log.write_text("I20 feature_extraction.cc:42] Processed file [3/20]\nSQLite error: database or disk is full\n")
+    with pytest.raises(OSError) as exc:
+        raise_if_disk_full(log)
+    assert exc.value.errno == errno.ENOSPC and str(log) in exc.value.filename
+    log.write_text("poselib: Check failed: inliers > 0\n*** SIGABRT received\n")
+    raise_if_disk_full(log)  # another failure: the next rung's to try

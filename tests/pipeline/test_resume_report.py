@@ -181,6 +181,19 @@ def test_report_skips_a_damaged_stamp(tmp_path):
     assert "<h1>Reconstruction report" in page and "Stages" in page
 
 
+def test_report_curves_skip_a_log_line_cut_short(tmp_path):
+    """log.jsonl is appended to: a kill in the middle of a line leaves it cut short (until the training resumes and
+    trims it), and the report read every line with json.loads."""
+    import json
+
+    from pipeline.report.stage import curves
+
+    log = tmp_path / "log.jsonl"
+    log.write_text("".join(json.dumps({"step": s, "loss": 0.5 / s, "psnr": 10.0 + s}) + "\n" for s in (1, 2)) +
+                   '{"step": 3, "loss": 0.1')
+    assert curves(log, tmp_path / "curves.png") is not None and (tmp_path / "curves.png").exists()
+
+
 def test_report_renders_beside_masks_of_another_size(small_ws, tmp_path):
     """images/ redone at another size (cameras --force --cameras.max-side …) leaves masks/ of the old size until
     the masks stage runs again; the report's renders then score over the mesh's own pixels (not numpy's "operands

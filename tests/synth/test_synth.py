@@ -246,6 +246,34 @@ def test_ground_effect_object_rests_on_a_plane_masks_and_mesh_object_only(tmp_pa
     assert "ground_shadows" not in ground_only["passes"]  # no lighting: no shadows computed
 
 
+def test_ground_effect_as_a_wall_behind_the_object_seen_from_the_front(tmp_path):
+    """``normal: [1, 0, 0]``: the plane is a wall at the object's back (its smallest x), touching it, facing the
+    cameras, which ``azimuth`` keeps in front of it: every view sees the wall around the object, the masks hold the
+    object alone, and the GT cameras carry the wall as the support plane."""
+    from dvr.cameras import load_cameras
+
+    ball = {"kind": "sphere", "radius": 0.5}
+    base = dict(shape=ball, lighting={"kind": "lambertian"}, background={"kind": "constant", "color": [0, 0, 1]},
+                cameras={"elevation": [-10, 30], "azimuth": [-60, 60]})
+    wall = {"kind": "ground", "normal": [1, 0, 0], "pattern": "checker", "scale": 4.0}
+    meta = write_scene(small_scene(**base, effects=[wall]), tmp_path / "w")
+    n, d = np.array(meta["ground_plane"][:3]), meta["ground_plane"][3]
+    assert np.allclose(n, [1, 0, 0]) and -d == pytest.approx(-0.5 + 0.004, abs=0.003)  # touches the ball's back
+    cams = np.load(tmp_path / "w" / "cameras.npz")
+    assert np.allclose(cams["ground_plane"], meta["ground_plane"])
+    write_scene(small_scene(**base), tmp_path / "f")
+    for i in range(8):
+        mw = cv2.imread(str(tmp_path / "w" / "masks" / f"{i:06d}.png"), 0) > 127
+        mf = cv2.imread(str(tmp_path / "f" / "masks" / f"{i:06d}.png"), 0) > 127
+        assert (mw != mf).sum() <= 2  # the object alone
+        img = _img(tmp_path / "w", i)
+        on_wall = ~mw & (np.abs(img - [0, 0, 1]).sum(-1) > 0.05)
+        assert on_wall.mean() > 0.5  # the wall behind and around the object
+    centres = load_cameras(tmp_path / "w" / "cameras.npz").centers  # the canonical frame (world_scale 1)
+    az = np.degrees(np.arctan2(centres[:, 1], centres[:, 0]))
+    assert az.min() >= -60 - 1e-6 and az.max() < 60 and az.max() - az.min() > 90  # the arc in front of the wall
+
+
 def test_ground_patterns_and_soft_contact_shadow():
     from synth.ground import ground_albedo, ground_shading
     from synth.scene import Effect

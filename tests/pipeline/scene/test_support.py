@@ -174,6 +174,69 @@ def test_no_support_through_the_object_itself():
     assert find_support(np.concatenate([_floor(), sills, body + [0, 0, 0.3]]), C, R, target) is not None
 
 
+def _arc(n=12, radius=3.0, height=0.3, target=(0.0, 0.0, 0.0), span=120.0):
+    """``n`` cameras on an arc of ``span`` degrees in front of a wall at small x (a half orbit: nobody photographs
+    through a wall), at ``height``, looking at ``target``."""
+    az = np.radians(np.linspace(-span / 2, span / 2, n))
+    C = np.stack([radius * np.cos(az), radius * np.sin(az), np.full(n, height)], 1)
+    return C, np.stack([_look_at(c, target) for c in C])
+
+
+def _upright_wall(x, n=2000, half=2.0):
+    """Points on the wall x = ``x``, within ``half`` of the object along y and z."""
+    return np.stack([x + RNG.normal(0, 0.002, n), RNG.uniform(-half, half, n), RNG.uniform(-half, half, n)], 1)
+
+
+def _seen_ball(n, centre, radius, min_x=-0.8):
+    """Points on a ball where cameras in front of it (at large x) see them: its unit normal's x above ``min_x``."""
+    u = RNG.normal(size=(4 * n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return np.asarray(centre) + radius * u[u[:, 0] > min_x][:n]
+
+
+def test_a_wall_the_object_hangs_on_is_found():
+    """An object hung on a wall, photographed from the front only: no floor, so the plane it touches on its far side
+    from the cameras is the support, its normal towards the cameras; without looking beyond floors, none."""
+    C, R = _arc()
+    target = np.array([0.0, 0.0, 0.0])
+    pts = np.concatenate([_upright_wall(-0.5), _seen_ball(400, (0.0, 0.0, 0.0), 0.5)])
+    pl = find_support(pts, C, R, target)
+    assert pl is not None
+    assert pl.normal @ [1, 0, 0] > 0.9999 and abs(pl.offset - 0.5) < 0.01  # x = −0.5, facing +x
+    assert 1900 <= pl.inliers <= 2100
+    assert pl.object_height == pytest.approx(1.0, abs=0.05)  # the ball's front
+    assert np.all(pl.height(C) > 0)
+    assert find_support(pts, C, R, target, backing=False) is None
+
+
+def test_a_backdrop_the_object_does_not_touch_is_not_taken():
+    """A textured backdrop some way behind an object that touches nothing (empty space between them): no support;
+    brought up to the object's back, it is one."""
+    C, R = _arc()
+    target = np.array([0.0, 0.0, 0.0])
+    ball = _seen_ball(400, (0.0, 0.0, 0.0), 0.4)
+    behind = np.concatenate([_upright_wall(-1.5), ball])
+    assert find_support(behind, C, R, target) is None
+    assert find_support(behind, C, R, target, max_gap=np.inf) is not None  # the gap is what keeps it out
+    touching = find_support(np.concatenate([_upright_wall(-0.4), ball]), C, R, target)
+    assert touching is not None and touching.normal @ [1, 0, 0] > 0.9999
+
+
+def test_the_floor_stays_the_support_when_a_wall_touches_the_object_too():
+    """An object standing on a floor and against a wall, photographed from the front: the floor is the support (as
+    without the wall); the wall stays background for the masks' colours."""
+    C, R = _arc(height=1.5, target=(0.0, 0.0, 0.5))
+    target = np.array([0.0, 0.0, 0.5])
+    floor = _floor()
+    floor = floor[floor[:, 0] > -0.5]  # the floor ends at the wall
+    wall = _upright_wall(-0.5) + [0, 0, 2.0]  # from the floor up
+    ball = _seen_ball(400, (0.0, 0.0, 0.5), 0.5)
+    alone = find_support(np.concatenate([floor, ball]), C, R, target)
+    pl = find_support(np.concatenate([floor, wall, ball]), C, R, target)
+    assert alone is not None and pl is not None and pl.normal @ [0, 0, 1] > 0.9999
+    assert np.allclose(pl.vector, alone.vector, atol=2e-3)
+
+
 def _floor_hits(o, d, z=-0.5):
     """Rays (o, d) against the floor z: whether each meets it in front of its camera, and where (o where not)."""
     s = (z - o[:, 2]) / np.where(d[:, 2] < 0, d[:, 2], np.nan)  # ray depth to the floor (NaN: never meets it)

@@ -258,6 +258,21 @@ def test_upright_puts_the_glb_up_along_gltf_y(grounded):
                                4.0 * trimesh.transform_points(points, T), atol=1e-9)
 
 
+def test_upright_of_an_object_on_a_wall_keeps_the_cameras_up():
+    """An object hung on a wall: the support plane's normal is level (towards the cameras), so +Y is the capture's
+    up, not the wall's normal (the object would open lying on its back), and +Z still points at the first camera."""
+    up = np.array([0.0, 0.0, 1.0])
+    Rs, Cs = _level_ring(up)
+    K = np.tile(np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), (len(Rs), 1, 1))
+    wall = np.array([1.0, 0.0, 0.0, 0.6])  # the plane x = −0.6, facing +x
+    cams = Cameras(K, Rs, -np.einsum("nij,nj->ni", Rs, Cs), np.eye(4), wall)
+    T, source = upright(cams, "normalized")
+    assert source == "cameras"
+    np.testing.assert_allclose(T[:3, :3] @ up, [0, 1, 0], atol=1e-9)
+    first = trimesh.transform_points(cams.centers[:1], T)[0]
+    assert abs(first[0]) < 1e-9 and first[2] > 0
+
+
 def test_gltf_validator(baked, tmp_path):
     from tests.conftest import ROOT
 
@@ -292,6 +307,28 @@ def test_glb_textures_clamp_to_edge(tmp_path):
         sampler = tree["samplers"][texture["sampler"]]
         assert sampler["wrapS"] == sampler["wrapT"] == 33071  # CLAMP_TO_EDGE
         assert sampler["minFilter"] == 9987 and sampler["magFilter"] == 9729
+
+
+def test_a_full_disk_while_the_png_is_written_in_its_thread_stops_the_export(tmp_path, monkeypatch):
+    """textured.png is written in a thread beside the GLB's encoding: its failure (a full disk) is the export's, not
+    a warning in the thread and an OBJ without its texture."""
+    import errno
+
+    from dvr import atomic
+
+    real = atomic.os.replace
+
+    def replace(src, dst):
+        if str(dst).endswith("textured.png"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", replace)
+    box = trimesh.creation.box()
+    uvs = np.random.default_rng(0).random((len(box.vertices), 2))
+    with pytest.raises(atomic.DiskFull, match="textured.png"):
+        export_textured(tmp_path, box.vertices, box.faces, uvs, np.full((8, 8, 3), 0.5))
+    assert not (tmp_path / "textured.png").exists()
 
 
 # ---- synthetic scenes rendered here (a few small views; the bake's robustness features) ----

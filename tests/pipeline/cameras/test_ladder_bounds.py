@@ -1,0 +1,66 @@
+"""The SfM ladder in bounded time: it stops at a model good enough to reconstruct from (the photos it lacks are
+named, with why), later rungs extract fewer features for many photos, and its time budget ends it with one line."""
+
+import json
+
+import cv2
+import numpy as np
+import yaml
+
+from pipeline.cameras.sfm import ladder, shortfalls
+from pipeline.cli import main
+from synth import scene_from_dict, write_scene
+from tests.conftest import ROOT
+
+
+def _torus_photos(tmp_path, n_views: int):
+    spec = yaml.safe_load((ROOT / "configs" / "scenes" / "torus_backdrop.yaml").read_text())
+    spec["cameras"].update(n_views=n_views, heldout=0)
+    write_scene(scene_from_dict(spec, ROOT / "configs" / "scenes"), tmp_path / "syn")
+    return tmp_path / "syn" / "images"
+
+
+def test_the_ladder_does_not_climb_for_the_last_photo(tmp_path, capsys):
+    """24 photos of the textured torus and one of something else: the first rung poses the 24, which is enough
+    (cameras.enough-registered); no later rung runs for the 25th, and the stage says which photo it left out and
+    that it shares no verified match with the others."""
+    images = _torus_photos(tmp_path, 24)
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(images / "stray.png"), rng.integers(0, 256, (240, 320, 3), dtype=np.uint8))
+    ws = tmp_path / "ws"
+    assert main(["cameras", str(ws), "--images", str(images)]) == 0
+    err = capsys.readouterr().err
+    stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
+    assert [r["rung"] for r in stamp["rungs"]] == ["default"], stamp["rungs"]
+    assert stamp["registered"] == 24 and stamp["unregistered"] == ["stray"]
+    assert "left out 1 photo(s) SfM could not pose: stray (no verified match with the posed photos" in err
+
+
+def test_a_model_short_of_enough_photos_climbs():
+    stats = {"registered": 22, "total": 23, "mean_reprojection_error": 0.5, "mean_track_length": 4.0,
+             "median_points_per_view": 400}
+    assert shortfalls(stats, enough_registered=0.9) == []
+    assert shortfalls(stats, enough_registered=1.0) == ["22/23 registered"]
+    assert shortfalls({**stats, "registered": 19}, enough_registered=0.9) == ["19/23 registered"]
+
+
+def test_later_rungs_extract_fewer_features_for_many_photos():
+    few, many = ladder("default", "merge", 8192, n_photos=20), ladder("default", "merge", 8192, n_photos=60)
+    assert [r.max_features for r in few] == [8192] + [16384] * 5
+    assert [r.max_features for r in many] == [8192] * 6  # 16 k × 30 / 60 is the first rung's 8 k
+    assert ladder("default", "guided", 4096, n_photos=45)[1].max_features == 11264  # 16 k × 30 / 45, rounded to 1 k
+
+
+def test_the_time_budget_ends_the_climb(tmp_path, capsys):
+    """12 photos 30° apart: the first rung poses a few of them and a later one would pose them all (the ladder's
+    second rung does), but a budget spent before it starts ends the ladder: the first rung's model is all there is,
+    too short here, and the stage stops with one line."""
+    images = _torus_photos(tmp_path, 12)
+    ws = tmp_path / "ws"
+    rc = main(["cameras", str(ws), "--images", str(images), "--cameras.sfm-seconds", "0.001",
+               "--cameras.sfm-seconds-per-photo", "0.001", "--cameras.no-board"])
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "photos registered" in err[0], err
+    assert "is spent; rungs not tried: guided, dsp, relaxed, global, merge" in captured.out
+    assert "rung guided:" not in captured.out and not (ws / "cameras.npz").exists()

