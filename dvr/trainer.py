@@ -35,9 +35,8 @@ from dvr.hull import (
     outside_hull,
 )
 from dvr.implicit import implicit_depth
-from dvr.march import INSIDE, MISS, SurfaceResult
+from dvr.march import INSIDE, MISS, SurfaceResult, render_view
 from dvr.photohull import PhotoCarveResult, photo_carve
-from dvr.render import render_view
 from dvr.shading import ViewShading
 from dvr.surface_graph import SurfaceFinder
 

@@ -18,9 +18,8 @@ from dvr.data import load_scene
 from dvr.extract import refine_vertices
 from dvr.fields import finite_difference_normals, make_field
 from dvr.hull import hull_logits, mask_lookup
-from dvr.march import MISS, find_surface
+from dvr.march import MISS, find_surface, render_view
 from dvr.metrics import masked_psnr
-from dvr.render import render_view
 from dvr.trainer import Trainer
 from tests.dvr.test_hard_cases import tiny_cfg
 

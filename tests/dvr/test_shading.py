@@ -85,8 +85,8 @@ def test_training_keeps_highlights_out_of_the_diffuse_field(tmp_path):
 
     from dvr.config import FieldConfig
     from dvr.data import load_scene
+    from dvr.march import render_view
     from dvr.metrics import masked_psnr
-    from dvr.render import render_view
     from dvr.trainer import train
     from synth import write_scene
     from tests.conftest import small_scene
