@@ -37,7 +37,7 @@ class CamerasConfig:
     seed: int = 0
     """Random seed of COLMAP's mapper, its RANSAC and the re-triangulation."""
     deterministic: bool = True
-    """Run COLMAP on one thread, so the same photos give the same cameras; off: all cores, faster, not repeatable."""
+    """Map on one thread, so the same photos give the same cameras; off: all cores, faster, not repeatable."""
     triangulate_given: bool = True
     """With --given-cameras: triangulate matched features at the given poses; off: the cameras alone, no points."""
     camera_model: str = "SIMPLE_RADIAL"

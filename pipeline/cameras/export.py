@@ -109,7 +109,7 @@ def report_sfm(rec, names: list[str], cfg: CamerasConfig, matches: dict[str, int
           f"{info['mean_reprojection_error']:.3f} px, mean track length {info['mean_track_length']:.2f}, "
           f"{info['points']} points")
     if len(reg) < max(3, cfg.min_registered_fraction * len(names)):
-        raise StageError(f"only {len(reg)}/{len(names)} photos registered (missing: {names_or_count(missing)}); "
+        raise StageError(f"only {len(reg)}/{len(names)} photos registered (missing: {left_out(missing, matches)}); "
                          "likely too little overlap or texture, or motion blur — add photos between the missing ones")
     if missing:
         print(f"cameras: left out {len(missing)} photo(s) SfM could not pose: {left_out(missing, matches)}",

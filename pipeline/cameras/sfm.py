@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import sqlite3
 import subprocess
 import sys
 import time
@@ -122,6 +123,36 @@ def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera
     for names in groups:
         pycolmap.extract_features(db, images, image_names=names, camera_mode=mode, reader_options=reader,
                                   extraction_options=ext)
+    number_by_name(db)
+
+
+def number_by_name(db: Path) -> None:
+    """Give the database's images (and their frames) ids in the order of their names. COLMAP numbers photos as
+    its extraction threads finish them, so on several threads the ids, and with them the mapper's choices, would
+    differ from run to run although each photo's features do not."""
+    con = sqlite3.connect(db)
+    try:
+        old = [row[0] for row in con.execute("SELECT image_id FROM images ORDER BY name")]
+        if old == sorted(old):
+            return
+        frames = dict(con.execute("SELECT data_id, frame_id FROM frame_data WHERE sensor_type = 0"))
+        shift = 1 + max(old + list(frames.values()))  # two passes: no id is taken twice on the way
+        new = {o: shift + i + 1 for i, o in enumerate(old)}
+        with con:
+            for table, column in (("images", "image_id"), ("keypoints", "image_id"), ("descriptors", "image_id"),
+                                  ("frame_data", "data_id")):
+                where = " AND sensor_type = 0" if table == "frame_data" else ""
+                for o, n in new.items():
+                    con.execute(f"UPDATE {table} SET {column} = ? WHERE {column} = ?{where}", (n, o))
+            for o, n in new.items():
+                if o in frames:
+                    con.execute("UPDATE frames SET frame_id = ? WHERE frame_id = ?", (n, frames[o]))
+                    con.execute("UPDATE frame_data SET frame_id = ? WHERE frame_id = ?", (n, frames[o]))
+            for table, column in (("images", "image_id"), ("keypoints", "image_id"), ("descriptors", "image_id"),
+                                  ("frame_data", "data_id"), ("frames", "frame_id"), ("frame_data", "frame_id")):
+                con.execute(f"UPDATE {table} SET {column} = {column} - ? WHERE {column} > ?", (shift, shift))
+    finally:
+        con.close()
 
 
 def match_features(db: Path, n_images: int, rung: Rung, matching: str, seed: int, threads: int = -1) -> None:
@@ -174,7 +205,8 @@ def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camer
     model is written to ``work/<rung>/model`` and its timings to ``work/<rung>/result.json``. ``base``: (model
     folder, its database) to continue from instead (the ``extend`` mapper). Features and matches use every core
     whatever ``threads`` says: each photo's features and each pair's matches come out the same on any number of
-    threads (each pair's RANSAC is seeded alone); ``threads`` is the mapper's."""
+    threads (each pair's RANSAC is seeded alone; photos are numbered by name, :func:`number_by_name`); ``threads``
+    is the mapper's."""
     from pipeline.colmaplib import info_to_stderr
 
     info_to_stderr()  # COLMAP's info lines are this rung's log

@@ -1,6 +1,7 @@
 """The SfM ladder on captures default SIFT starves, and the pose sanity check on a symmetric one (COLMAP runs)."""
 
 import json
+import re
 import shutil
 import sqlite3
 
@@ -14,6 +15,7 @@ from dvr.metrics import pose_errors
 from pipeline.cameras.sfm import ladder as ladder_rungs
 from pipeline.cameras.sfm import match_features, verify_again
 from pipeline.cli import main
+from pipeline.config import Config
 from pipeline.stages import run_stage
 from synth import scene_from_dict, write_scene
 from tests.conftest import ROOT
@@ -34,7 +36,9 @@ def test_ladder_climbs_where_default_sift_falls_short(tmp_path, capfd):
     spec["cameras"].update(n_views=24, rings=2, width=320, height=240, heldout=0)
     write_scene(scene_from_dict(spec, ROOT / "configs" / "scenes"), tmp_path / "syn")
     ws = tmp_path / "ws"
-    run_stage("cameras", ws, images=tmp_path / "syn" / "images")
+    cfg = Config()
+    cfg.cameras.sfm_seconds = 3600  # the whole ladder whatever the machine's speed
+    run_stage("cameras", ws, cfg, images=tmp_path / "syn" / "images")
     out, err = capfd.readouterr()
     assert "Undistorting image" not in out + err and "undistorters.cc" not in out + err
     stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
@@ -69,10 +73,12 @@ def test_symmetric_object_stops_with_a_clear_error_never_wrong_poses(tmp_path, c
                                       "elevation": [0, 50], "rings": 2}}, ROOT)
     write_scene(sc, tmp_path / "syn")
     ws = tmp_path / "ws"
-    rc = main(["cameras", str(ws), "--images", str(tmp_path / "syn" / "images")])
+    # the whole ladder whatever the machine's speed (the time budget is tested in test_ladder_bounds.py)
+    rc = main(["cameras", str(ws), "--images", str(tmp_path / "syn" / "images"), "--cameras.sfm-seconds", "3600"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1
-    assert "symmetric or repetitive" in err[0] and "000000" in err[0] and "textured mat" in err[0]
+    assert "symmetric or repetitive" in err[0] and "textured mat" in err[0]
+    assert re.search(r"views (\d{6}|\d+ views \(\d{6}, \d{6}, \d{6}, …)", err[0]), err[0]  # the views, or their count
     assert not (ws / "cameras.npz").exists()  # nothing reaches training
     # the DSP rung's features matched and verified again give the same verified pairs
     dsp, ladder = ladder_rungs("dsp", "dsp")[0], ws / "sfm" / "ladder"

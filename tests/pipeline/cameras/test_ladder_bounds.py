@@ -2,12 +2,13 @@
 named, with why), later rungs extract fewer features for many photos, and its time budget ends it with one line."""
 
 import json
+import sqlite3
 
 import cv2
 import numpy as np
 import yaml
 
-from pipeline.cameras.sfm import ladder, shortfalls
+from pipeline.cameras.sfm import LADDER, _extract, ladder, number_by_name, shortfalls
 from pipeline.cli import main
 from synth import scene_from_dict, write_scene
 from tests.conftest import ROOT
@@ -64,3 +65,29 @@ def test_the_time_budget_ends_the_climb(tmp_path, capsys):
     assert rc == 2 and len(err) == 1 and "photos registered" in err[0], err
     assert "is spent; rungs not tried: guided, dsp, relaxed, global, merge" in captured.out
     assert "rung guided:" not in captured.out and not (ws / "cameras.npz").exists()
+
+
+def test_photos_are_numbered_by_name_whatever_order_extraction_finished(tmp_path):
+    """COLMAP numbers photos as its extraction threads finish them; the database's ids follow the names after
+    :func:`number_by_name`, with each photo's keypoints, descriptors and frame kept with it."""
+    images = _torus_photos(tmp_path, 4)
+    names = sorted(p.name for p in images.iterdir())
+    db = tmp_path / "f.db"
+    _extract(db, images, [names], LADDER[0], "SIMPLE_RADIAL", threads=1)
+    con = sqlite3.connect(db)
+
+    def dump():
+        return (con.execute("SELECT i.image_id, i.name, k.data, d.data FROM images i JOIN keypoints k USING (image_id) "
+                            "JOIN descriptors d USING (image_id) ORDER BY i.image_id").fetchall(),
+                sorted(con.execute("SELECT * FROM frame_data").fetchall()), sorted(con.execute("SELECT * FROM frames")))
+
+    before = dump()
+    assert [row[1] for row in before[0]] == names
+    with con:  # the order two threads may leave: photos 1 and 3 swapped, frames with them
+        for table, column in (("images", "image_id"), ("keypoints", "image_id"), ("descriptors", "image_id"),
+                              ("frame_data", "data_id"), ("frame_data", "frame_id"), ("frames", "frame_id")):
+            for old, new in ((1, 100), (3, 1), (100, 3)):
+                con.execute(f"UPDATE {table} SET {column} = ? WHERE {column} = ?", (new, old))
+    assert dump() != before
+    number_by_name(db)
+    assert dump() == before
