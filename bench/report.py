@@ -3,6 +3,7 @@ plot and the findings (what each knob costs and buys, the Pareto fronts)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 # The versions of the pipeline's defaults a reconstruction row can have trained with (run.py stamps each row it runs
@@ -118,7 +119,7 @@ def table(results: list[dict], mach: dict) -> str:
     for r in reconstructions(results):
         cams = "GT" if r["cameras"] == "gt" else "photos only"
         if "error" in r:
-            lines.append(f"| {r['scene']} | {cams} | {label(r)} | failed: {r['error']} |||||||||")
+            lines.append(f"| {r['scene']} | {cams} | {label(r)} | failed: {r['error'].split(' (')[0]} |||||||||")
             continue
         s = r["seconds"]
         ch = None if r["chamfer_rel"] is None else 100 * r["chamfer_rel"]
@@ -161,7 +162,7 @@ def cameras_table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-REAL_NAMES = {"dtu": "DTU scan24: 49 photos of a toy house on a table (1600×1200)",
+REAL_NAMES = {"dtu": "DTU scan24: 49 photos of a toy house on a table (384×384)",
               "mouse": "a mouse on a white table: 59 phone photos, portrait and landscape (1440×1920)",
               "blowtorch": "a shiny brass blowtorch on a carpet: 67 photos (1600×1068), hand masks"}
 STAGE_ORDER = ("cameras", "masks", "depth", "train", "mesh", "texture")
@@ -178,7 +179,9 @@ def real_table(results: list[dict]) -> str:
              "|---|---|" + "---|" * len(STAGE_ORDER) + "---|---|---|"]
     for r in sorted(rows, key=lambda r: list(REAL_NAMES).index(r["scene"])):
         if "error" in r:
-            lines.append(f"| {REAL_NAMES[r['scene']]} | failed: {r['error']} |" + " |" * (len(STAGE_ORDER) + 3))
+            posed = re.search(r"only (\d+/\d+) photos registered", r["error"])
+            why = f"{posed.group(1)}: stopped, too few posed" if posed else f"failed: {r['error'].split(':')[0]}"
+            lines.append(f"| {REAL_NAMES[r['scene']]} | {why} |" + " |" * (len(STAGE_ORDER) + 3))
             continue
         secs = r["seconds"]
         iou = f"{r['mask_iou']:.3f}" if r.get("mask_iou") is not None else "–"

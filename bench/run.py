@@ -258,12 +258,12 @@ def spec_key(r: dict) -> tuple:
 
 def merged(path: Path, new: list[dict]) -> list[dict]:
     """The rows of the results JSON ``path`` with those of ``new`` put in their place (same spec); a failed new
-    row keeps the old one and says so."""
+    row keeps the old one and says so (without one it is added: the tables show the failure)."""
     rows = json.loads(path.read_text())["results"]
     index = {spec_key(r): k for k, r in enumerate(rows)}
     for r in new:
         k = index.get(spec_key(r))
-        if r.get("error") is not None:
+        if r.get("error") is not None and k is not None:
             print(f"bench: {spec_key(r)} failed ({r['error']}); its earlier row is kept", file=sys.stderr)
         elif k is None:
             rows.append(r)

@@ -117,16 +117,22 @@ def report_sfm(rec, names: list[str], cfg: CamerasConfig, matches: dict[str, int
     return info
 
 
-def left_out(missing: list[str], matches: dict[str, int] | None) -> str:
-    """The photos SfM left out, and why when ``matches`` (per photo, its verified matches with the posed ones) says."""
+def left_out(missing: list[str], matches: dict[str, tuple[int, int]] | None) -> str:
+    """The photos SfM left out, and why when ``matches`` (per photo, its verified matches with the posed photos and
+    with any photo) says."""
     if matches is None:
         return names_or_count(missing, look="the stamp .stages/cameras.json")
-    none = [n for n in missing if not matches.get(n)]
-    some = [n for n in missing if matches.get(n)]
-    parts = [f"{names_or_count(none)} (no verified match with the posed photos: another scene, or blurred)"] if none \
-        else []
+    posed = {n: matches.get(n, (0, 0))[0] for n in missing}
+    alone = [n for n in missing if not matches.get(n, (0, 0))[1]]
+    apart = [n for n in missing if matches.get(n, (0, 0))[1] and not posed[n]]
+    some = [n for n in missing if posed[n]]
+    parts = [f"{names_or_count(alone)} (no verified match with any other photo: another scene, or blurred)"] \
+        if alone else []
+    if apart:
+        parts.append(f"{names_or_count(apart)} (matched among themselves, not with the posed photos: SfM could not "
+                     "join the two groups; photos between them help)")
     if some:
-        parts.append(f"{names_or_count([f'{n} ({matches[n]} verified matches)' for n in some])} (too few to pose "
+        parts.append(f"{names_or_count([f'{n} ({posed[n]} verified matches)' for n in some])} (too few to pose "
                      "them: a photo between each and its neighbours helps)")
     return "; ".join(parts)
 

@@ -183,20 +183,21 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     return best[1], inp, best[3], best[2], tried
 
 
-def verified_matches(database: Path, registered: set[str]) -> dict[str, int]:
-    """Per photo file name (as SfM saw it), its verified inlier matches with the ``registered`` photos, from the COLMAP
-    ``database``'s two-view geometries."""
+def verified_matches(database: Path, registered: set[str]) -> dict[str, tuple[int, int]]:
+    """Per photo file name (as SfM saw it), its verified inlier matches (with the ``registered`` photos, with any
+    photo), from the COLMAP ``database``'s two-view geometries."""
     import sqlite3
 
     con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
     try:
         ids = dict(con.execute("select image_id, name from images"))
-        out: dict[str, int] = {}
+        out: dict[str, tuple[int, int]] = {}
         for pair_id, rows in con.execute("select pair_id, rows from two_view_geometries where rows > 0"):
             a, b = ids.get(pair_id // 2147483647), ids.get(pair_id % 2147483647)
             for one, other in ((a, b), (b, a)):
-                if one is not None and other in registered:
-                    out[one] = out.get(one, 0) + rows
+                if one is not None:
+                    posed, total = out.get(one, (0, 0))
+                    out[one] = (posed + rows * (other in registered), total + rows)
     finally:
         con.close()
     return out

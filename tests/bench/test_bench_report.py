@@ -53,3 +53,6 @@ def test_real_captures_table_gives_each_stages_seconds_and_where_it_ran():
     assert len(text) == 5 and "66/67 | 150 | 40 | 1 | 90 | 9 | 14 | 304 | 0.951 | 20.50 (22.25) |" in text[2]
     assert text[-1] == "Measured on Xeon, 2 cores (rows without a machine: the bench's)."
     assert real_table(rows[1:]) == ""  # a knob's row and a synthetic scene are no real-capture rows
+    failed = {"scene": "blowtorch", "cameras": "sfm", "preset": "default",
+              "error": "pipeline.errors.StageError: only 19/67 photos registered (missing: …)"}
+    assert "| 19/67: stopped, too few posed |" in real_table([failed]).splitlines()[2]

@@ -29,8 +29,9 @@ def test_merged_keeps_the_old_row_when_the_rerun_failed_and_appends_new_specs(tm
     photos = {"scene": "cow", "cameras": "sfm", "preset": "default", "psnr": 24.0}
     path = _write(tmp_path, [photos])
     new = {"scene": "jar", "cameras": "sfm", "preset": "default", "psnr": 32.0}
-    rows = merged(path, [{**photos, "error": "boom"}, new])
-    assert [r["psnr"] for r in rows] == [24.0, 32.0]
+    failed = {"scene": "mouse", "cameras": "sfm", "preset": "default", "error": "boom"}
+    rows = merged(path, [{**photos, "error": "boom"}, new, failed])
+    assert [r.get("psnr") for r in rows] == [24.0, 32.0, None]  # a new spec's failure is shown, not dropped
 
 
 def test_a_bench_with_dtu_rows_makes_dtu_stages_again(tmp_path, monkeypatch):

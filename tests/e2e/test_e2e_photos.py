@@ -31,7 +31,7 @@ from synth import load_scene_file, write_scene
 from synth.phone import upright_roll, write_phone_folder
 from tests.conftest import ROOT
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.long]
 TURN = {1: None, 6: cv2.ROTATE_90_CLOCKWISE, 3: cv2.ROTATE_180, 8: cv2.ROTATE_90_COUNTERCLOCKWISE}
 
 

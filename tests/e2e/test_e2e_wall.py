@@ -16,7 +16,7 @@ from pipeline.stages import run_stage
 from synth import scene_from_dict, write_scene
 from tests.conftest import ROOT
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.long]
 
 
 def test_a_wall_the_object_hangs_on_is_left_out_of_the_masks(tmp_path):

@@ -20,7 +20,7 @@ from pipeline.stages import run_stage
 from synth import scene_from_dict, write_scene
 from tests.conftest import ROOT
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.long]
 
 
 def _centres(c):

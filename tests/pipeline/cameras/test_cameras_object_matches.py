@@ -15,7 +15,7 @@ from pipeline.cli import main
 from synth import scene_from_dict, write_scene
 from tests.conftest import ROOT
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.long]
 
 
 def _object_matches(db, masks, scale: int) -> tuple[int, int]:

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import yaml
 
+from pipeline.cameras.export import left_out
 from pipeline.cameras.sfm import LADDER, _extract, ladder, number_by_name, shortfalls
 from pipeline.cli import main
 from synth import scene_from_dict, write_scene
@@ -34,7 +35,7 @@ def test_the_ladder_does_not_climb_for_the_last_photo(tmp_path, capsys):
     stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
     assert [r["rung"] for r in stamp["rungs"]] == ["default"], stamp["rungs"]
     assert stamp["registered"] == 24 and stamp["unregistered"] == ["stray"]
-    assert "left out 1 photo(s) SfM could not pose: stray (no verified match with the posed photos" in err
+    assert "left out 1 photo(s) SfM could not pose: stray (no verified match with any other photo" in err
 
 
 def test_a_model_short_of_enough_photos_climbs():
@@ -91,3 +92,13 @@ def test_photos_are_numbered_by_name_whatever_order_extraction_finished(tmp_path
     assert dump() != before
     number_by_name(db)
     assert dump() == before
+
+
+def test_left_out_photos_are_grouped_by_why():
+    """A photo that matches nothing, photos that match only each other, and one with a few matches with the posed
+    photos: three reasons, three fixes."""
+    text = left_out(["alone", "a1", "a2", "few"], {"a1": (0, 300), "a2": (0, 280), "few": (12, 40)})
+    assert text.startswith("alone (no verified match with any other photo")
+    assert "a1, a2 (matched among themselves, not with the posed photos" in text
+    assert "few (12 verified matches) (too few to pose them" in text
+    assert left_out(["x"], None) == "x"

@@ -127,6 +127,8 @@ def _one_frame(folder):
     return folder
 
 
+@pytest.mark.slow
+@pytest.mark.long
 def test_cameras_from_a_hand_held_clip(tmp_path, capsys):
     """A phone's clip of one walk around the torus, held upright (36 frames of 180×240 stored turned in an H.264
     MP4 tagged 90°, every third shaken), through the cameras stage: 18 frames taken (20° apart), upright, none

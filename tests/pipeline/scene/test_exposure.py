@@ -130,6 +130,8 @@ def test_appearance_option_spellings():
         check_config(from_dict(TrainConfig, {"appearance": "sometimes"}), "train.")
 
 
+@pytest.mark.slow
+@pytest.mark.long
 def test_the_generators_exposure_is_measured_by_the_cameras_stage(tmp_path):
     """The torus on its floor photographed with exposure ±25 % and white balance ±8 % (16 views of 240×180):
     the cameras stage's exposure.json holds the generator's gains relative to their mean within 5 % (median 1 %),
