@@ -51,8 +51,8 @@ lint: setup
 test: lint
 	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m "not long"
 
-# the longest checks (the phone folder and the wall scene end to end, the SfM ladder, large photos, a hand-held
-# clip, exposure through SfM): CI runs them too
+# the ten longest checks (marked long: end-to-end runs, the SfM ladder, large photos, a hand-held clip, exposure,
+# a kill during training): CI runs them too
 test-long: setup
 	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m long
 

@@ -159,7 +159,6 @@ def test_report_lists_the_fitted_gains(tmp_path):
     assert "must be finite and positive" in appearance_section(Workspace(tmp_path))  # a line, not a traceback
 
 
-@pytest.mark.slow
 def fitted_gain_error(folder, albedo: dict, *options: str) -> tuple[float, float]:
     """Train a small torus photographed with per-view exposure and white balance (±25 % gain, ±8 % per channel)
     with the per-view appearance on: the largest relative error of the fitted gains against the generator's (both
@@ -180,6 +179,8 @@ def fitted_gain_error(folder, albedo: dict, *options: str) -> tuple[float, float
     return float(np.abs(g_fit / g_true - 1).max()), float(np.abs(g_true - 1).max())
 
 
+@pytest.mark.slow
+@pytest.mark.long
 def test_training_recovers_the_generators_exposure_where_views_clip(tmp_path):
     """A bright albedo that the brighter views clip at white: the fitted gains match the generator's within 5 %,
     because a clipped channel only says "at least this bright" (the censored RGB loss); with plain L1 on the

@@ -28,6 +28,7 @@ texture: {size: 256}
 """
 
 
+@pytest.mark.long
 def test_kill_during_training_then_reconstruct_resumes(small_ws, tmp_path):
     ws = tmp_path / "ws"
     shutil.copytree(small_ws, ws)
