@@ -97,7 +97,7 @@ def normalization(points: np.ndarray, Ps: np.ndarray, sizes: np.ndarray, centers
     return sphere_frame(c, min(r, 0.95 * dist.min()))
 
 
-def report_sfm(rec, names: list[str], cfg: CamerasConfig, matches: dict[str, int] | None = None) -> dict:
+def report_sfm(rec, names: list[str], cfg: CamerasConfig, matches: dict[str, tuple[int, int]] | None = None) -> dict:
     """Print and return the model's summary (registered photos, reprojection error, track length, points); a
     StageError when fewer than ``min_registered_fraction`` of the photos registered."""
     reg = {rec.image(i).name.rsplit(".", 1)[0] for i in rec.reg_image_ids()}
@@ -122,9 +122,11 @@ def left_out(missing: list[str], matches: dict[str, tuple[int, int]] | None) -> 
     with any photo) says."""
     if matches is None:
         return names_or_count(missing, look="the stamp .stages/cameras.json")
-    posed = {n: matches.get(n, (0, 0))[0] for n in missing}
-    alone = [n for n in missing if not matches.get(n, (0, 0))[1]]
-    apart = [n for n in missing if matches.get(n, (0, 0))[1] and not posed[n]]
+    posed, total = {}, {}
+    for n in missing:
+        posed[n], total[n] = matches.get(n, (0, 0))
+    alone = [n for n in missing if not total[n]]
+    apart = [n for n in missing if total[n] and not posed[n]]
     some = [n for n in missing if posed[n]]
     parts = [f"{names_or_count(alone)} (no verified match with any other photo: another scene, or blurred)"] \
         if alone else []

@@ -4,6 +4,7 @@ matches."""
 from __future__ import annotations
 
 import shutil
+import sqlite3
 import time
 from pathlib import Path
 
@@ -186,8 +187,6 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
 def verified_matches(database: Path, registered: set[str]) -> dict[str, tuple[int, int]]:
     """Per photo file name (as SfM saw it), its verified inlier matches (with the ``registered`` photos, with any
     photo), from the COLMAP ``database``'s two-view geometries."""
-    import sqlite3
-
     con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
     try:
         ids = dict(con.execute("select image_id, name from images"))
