@@ -22,19 +22,14 @@ sys.path.insert(0, str(ROOT))
 
 from bench.evaluate import fresh_folder  # noqa: E402
 from dvr.metrics import pose_errors  # noqa: E402
+from pipeline.cameras.pose_sanity import model_views  # noqa: E402
 from pipeline.cameras.sfm import Rung, _map  # noqa: E402
 from pipeline.colmaplib import pycolmap  # noqa: E402
 
 
 def poses(rec) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per photo stem of a COLMAP model: (world-to-camera rotation, camera centre)."""
-    out = {}
-    for i in rec.reg_image_ids():
-        image = rec.image(i)
-        pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
-        R, t = pose.rotation.matrix(), np.asarray(pose.translation)
-        out[Path(image.name).stem] = (R, -R.T @ t)
-    return out
+    return {Path(v.name).stem: (v.R, v.center) for v in model_views(rec)}
 
 
 def against(rec, reference) -> str:
