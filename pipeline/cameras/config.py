@@ -30,6 +30,10 @@ class CamerasConfig:
     """The SfM ladder's budget per photo; at its end the mapper stops and the best model so far is kept."""
     enough_registered: float = 0.9
     """A model that registers this fraction of the photos ends the ladder; the photos it lacks are left out."""
+    global_mapper: bool = True
+    """Where the incremental mapper leaves photos out, map the same matches with COLMAP's global mapper too."""
+    global_agreement_deg: PositiveFloat = 5.0
+    """The global mapper's views whose rotations differ from the incremental mapper's by more are dropped."""
     max_reprojection_error: float = 1.0
     """Mean reprojection error (px) above which a model counts as short and the ladder climbs."""
     max_bad_pose_fraction: float = 0.3
@@ -55,7 +59,7 @@ class CamerasConfig:
     final_retriangulate: bool = False
     """After the final passes, triangulate the points afresh from every match at the adjusted poses."""
     max_features: PositiveInt = 8192
-    """SIFT features per image at the ladder's first rung (later rungs up to 16k, fewer for many photos)."""
+    """SIFT features per image at the ladder's first rung (later rungs 16k); beyond 30 photos fewer in proportion."""
     max_h_inlier_ratio: float = 0.8
     """Two-view check: a pair whose homography explains more than this share of its inliers counts as planar."""
     object_matches: bool = True

@@ -6,6 +6,7 @@ from __future__ import annotations
 import shutil
 import sqlite3
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ from pipeline.cameras.export import (
     central_points,
     model_points,
 )
-from pipeline.cameras.pose_sanity import axes_convergence, model_views, pose_sanity
+from pipeline.cameras.pose_sanity import axes_convergence, model_views, pose_sanity, rotation_disagreement
 from pipeline.cameras.progress import heartbeat
 from pipeline.cameras.sfm import (
     RUNG_NAMES,
@@ -153,35 +154,89 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
         t0 = time.perf_counter()
         rec, database, secs, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed,
                                             base, sfm_threads(cfg), deadline, budget / 2 if step == 0 else None)
-        dt = time.perf_counter() - t0
-        if rec is None or rec.num_reg_images() < 2:
-            print(f"cameras: rung {rung.name}: {err or 'no model'} ({dt:.1f} s)")
-            tried.append({"rung": rung.name, "seconds": round(dt, 1), "error": err or "no model"})
+        references = [best[1]] if rung.mapper == "global" and best is not None else []
+        judged = _judge(rec, rung.name, time.perf_counter() - t0, secs, err, inp, names, cfg, rejected, tried,
+                        references)
+        if judged is None:
             continue
-        bad = pose_sanity(rec, inp)
-        n_reg = rec.num_reg_images()
-        if len(bad) > cfg.max_bad_pose_fraction * n_reg:
-            print(f"cameras: rung {rung.name}: {n_reg} registered but {len(bad)} poses are not credible, model "
-                  f"rejected ({dt:.1f} s)")
-            rejected.update(bad)
-            tried.append({"rung": rung.name, "seconds": round(dt, 1), "registered": n_reg, "rejected": len(bad)})
-            continue
-        _drop_views(rec, set(bad))
-        stats = model_stats(rec, names)
-        short = shortfalls(stats, cfg.max_reprojection_error, enough_registered=cfg.enough_registered)
-        dropped = f", dropped {len(bad)} views with wrong poses ({names_or_count(sorted(bad))})" if bad else ""
-        print(f"cameras: rung {rung.name}: registered {stats['registered']}/{len(names)}, "
-              f"{stats['mean_reprojection_error']:.2f} px, track length {stats['mean_track_length']:.2f}"
-              f"{dropped} in {dt:.1f} s → {'; '.join(short) if short else 'enough to reconstruct from'}")
-        tried.append({"rung": rung.name, "seconds": round(dt, 1), **{k: stats[k] for k in ("registered",
-                      "mean_reprojection_error", "mean_track_length")}, "dropped": sorted(bad), "steps": secs})
-        key = (stats["registered"], -stats["mean_reprojection_error"])
-        if best is None or key > best[0]:
-            best = (key, rec, rung.name, database)
-        if not short:
+        best = _better(best, judged[0], rec, rung.name, database)
+        if judged[1] and rung.mapper == "incremental" and _global_may_run(cfg, judged[0], step, deadline):
+            t0 = time.perf_counter()
+            again = replace(rung, name=f"{rung.name}-global", mapper="global")  # the same features and matches
+            grec, gdb, gsecs, gerr = run_rung(work, inp, groups, again, cfg.camera_model, cfg.matching, cfg.seed,
+                                              None, sfm_threads(cfg), max(deadline, time.time() + budget / 2))
+            gjudged = _judge(grec, again.name, time.perf_counter() - t0, gsecs, gerr, inp, names, cfg, None, tried,
+                             incremental_models(work / rung.name / "models"))
+            if gjudged is not None:
+                best = _better(best, gjudged[0], grec, again.name, gdb)
+                judged = gjudged if not gjudged[1] else judged
+        if not judged[1]:
             break
     _require_credible(None if best is None else best[1], rejected, inp, len(names), cfg.min_registered_fraction)
     return best[1], inp, best[3], best[2], tried
+
+
+def _judge(rec, name: str, seconds: float, steps: dict, err: str | None, inp: Path, names: list[str],
+           cfg: CamerasConfig, rejected: dict | None, tried: list, references: list) -> tuple[dict, list] | None:
+    """A rung's model as the ladder judges it, said on a line and added to ``tried``: None when there is none or it
+    is rejected (more than ``max_bad_pose_fraction`` of its views fail :func:`pose_sanity`, or disagree with the
+    ``references``' rotations, :func:`disagreeing_views`; the former go to ``rejected`` unless it is None), else
+    (its stats with the failing views dropped, why it is short: empty when enough to reconstruct from)."""
+    if rec is None or rec.num_reg_images() < 2:
+        print(f"cameras: rung {name}: {err or 'no model'} ({seconds:.1f} s)")
+        tried.append({"rung": name, "seconds": round(seconds, 1), "error": err or "no model"})
+        return None
+    bad = pose_sanity(rec, inp)
+    disagree = {n: why for ref in references for n, why in disagreeing_views(rec, ref, cfg.global_agreement_deg)}
+    n_reg = rec.num_reg_images()
+    if len(bad | disagree) > cfg.max_bad_pose_fraction * n_reg:
+        why = (f"{len(bad)} poses are not credible" if len(bad) >= len(disagree) else
+               f"{len(disagree)} rotations disagree with the incremental mapper's by over "
+               f"{cfg.global_agreement_deg:g}° (cameras.global-agreement-deg)")
+        print(f"cameras: rung {name}: {n_reg} registered but {why}, model rejected ({seconds:.1f} s)")
+        if rejected is not None:
+            rejected.update(bad)
+        tried.append({"rung": name, "seconds": round(seconds, 1), "registered": n_reg, "rejected": len(bad | disagree)})
+        return None
+    bad |= disagree
+    _drop_views(rec, set(bad))
+    stats = model_stats(rec, names)
+    short = shortfalls(stats, cfg.max_reprojection_error, enough_registered=cfg.enough_registered)
+    dropped = f", dropped {len(bad)} views with wrong poses ({names_or_count(sorted(bad))})" if bad else ""
+    print(f"cameras: rung {name}: registered {stats['registered']}/{len(names)}, "
+          f"{stats['mean_reprojection_error']:.2f} px, track length {stats['mean_track_length']:.2f}"
+          f"{dropped} in {seconds:.1f} s → {'; '.join(short) if short else 'enough to reconstruct from'}")
+    tried.append({"rung": name, "seconds": round(seconds, 1), **{k: stats[k] for k in ("registered",
+                  "mean_reprojection_error", "mean_track_length")}, "dropped": sorted(bad), "steps": steps})
+    return stats, short
+
+
+def _better(best, stats: dict, rec, name: str, database: Path):
+    """The better of the ladder's ``best`` so far and this model: more photos, then a smaller error."""
+    key = (stats["registered"], -stats["mean_reprojection_error"])
+    return (key, rec, name, database) if best is None or key > best[0] else best
+
+
+def _global_may_run(cfg: CamerasConfig, stats: dict, step: int, deadline: float) -> bool:
+    """Whether COLMAP's global mapper maps an incremental rung's matches again: ``cfg.global_mapper``, the model
+    lacks photos, and it is the first rung (which always finishes) or time is left."""
+    lacking = stats["registered"] < cfg.enough_registered * stats["total"]
+    return cfg.global_mapper and lacking and (step == 0 or time.time() < deadline - MIN_RUNG_SECONDS)
+
+
+def incremental_models(folder: Path) -> list:
+    """The models (of at least two photos) an incremental rung mapped into ``folder`` (``<rung>/models``)."""
+    from pipeline.colmaplib import pycolmap
+
+    recs = [pycolmap.Reconstruction(d) for d in sorted(folder.iterdir()) if d.is_dir()] if folder.is_dir() else []
+    return [r for r in recs if r.num_reg_images() >= 2]
+
+
+def disagreeing_views(rec, reference, tolerance_deg: float) -> list[tuple[str, str]]:
+    """Views of ``rec`` whose rotation, the two models' frames aligned (:func:`rotation_disagreement`), differs
+    from the ``reference`` model's by more than ``tolerance_deg``, with the reason."""
+    angles = rotation_disagreement(model_views(rec), model_views(reference), tolerance_deg)
+    return [(n, f"rotation {a:.0f}° from the incremental mapper's") for n, a in angles.items() if a > tolerance_deg]
 
 
 def verified_matches(database: Path, registered: set[str]) -> dict[str, tuple[int, int]]:

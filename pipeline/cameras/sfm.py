@@ -79,17 +79,21 @@ LADDER = (
 
 
 MANY_PHOTOS = 30
-"""Beyond this many photos the later rungs extract fewer features (:func:`ladder`): matching all pairs costs the
-photo count squared times the feature count squared."""
+"""Beyond this many photos every rung extracts fewer features (:func:`ladder`): matching all pairs costs the photo
+count squared times the feature count squared."""
+MIN_FIRST_FEATURES = 4096
+"""The first rung's features per photo are never cut below this for many photos (the blowtorch's 67 photos: 4096
+features match in 150 s where 8192 take 340 s; the first rung poses the same photos with either)."""
 
 
 def ladder(start: str, stop: str, max_features: int = 8192, max_h_inlier_ratio: float = 0.8,
            n_photos: int = 0) -> list[Rung]:
     """The rungs from ``start`` to ``stop`` (names of :data:`RUNG_NAMES`), in order; the first rung extracts
-    ``max_features`` features, the others at least twice that and 16 k for up to :data:`MANY_PHOTOS` photos, and for
-    ``n_photos`` more that many fewer in proportion (matching them all then costs what it costs for
-    :data:`MANY_PHOTOS`), never fewer than the first rung's; every rung verifies its matches with
-    ``max_h_inlier_ratio`` (:class:`Rung`)."""
+    ``max_features`` features, the others at least twice that and 16 k; for ``n_photos`` more than
+    :data:`MANY_PHOTOS` each rung that many fewer in proportion (matching them all then costs what it costs for
+    :data:`MANY_PHOTOS`), the first rung not below :data:`MIN_FIRST_FEATURES` (nor above ``max_features``), the
+    others never below the first rung's; every rung verifies its matches with ``max_h_inlier_ratio``
+    (:class:`Rung`)."""
     for name in (start, stop):
         if name not in RUNG_NAMES:
             raise ValueError(f"unknown SfM rung '{name}' (one of {', '.join(RUNG_NAMES)})")
@@ -98,10 +102,14 @@ def ladder(start: str, stop: str, max_features: int = 8192, max_h_inlier_ratio: 
     i, j = RUNG_NAMES.index(start), RUNG_NAMES.index(stop)
     if j < i:
         raise ValueError(f"the last SfM rung '{stop}' comes before the first '{start}'")
-    more = max(16384, 2 * max_features)
+    first, more = max_features, max(16384, 2 * max_features)
     if n_photos > MANY_PHOTOS:
-        more = max(max_features, 1024 * round(more * MANY_PHOTOS / n_photos / 1024))
-    return [replace(r, max_features=max_features if r.name == "default" else more,
+        def fewer(n: int) -> int:
+            return 1024 * round(n * MANY_PHOTOS / n_photos / 1024)
+
+        first = max(min(max_features, MIN_FIRST_FEATURES), fewer(max_features))
+        more = max(first, fewer(more))
+    return [replace(r, max_features=first if r.name == "default" else more,
                     max_h_inlier_ratio=max_h_inlier_ratio) for r in LADDER[i : j + 1]]
 
 

@@ -21,7 +21,7 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
    GrabCut refines inside it to the image edges — a mistake in one view is outvoted by the others; with a support
    plane, up to ``floor_rounds`` more rounds that change only the pixels whose ray passes under the object
    (:func:`low_band`): the floor between an object's legs, in its shadow and seen only by the views along the
-   legs, leaves the masks a little more each round (:func:`vote`);
+   legs, leaves the masks a little more each round, and the rounds stop where they grow instead (:func:`vote`);
 4. confidence = IoU between a view's first GrabCut mask and the hull's silhouette.
 """
 
@@ -453,7 +453,8 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
     """Multi-view vote rounds from the masks ``start``: the hull of the current masks (carving needs
     ``carve_min_views``; ``first_hull``: that of ``start`` when already built) is an upper bound in every view
     (:func:`vote_labels`) and GrabCut refines inside it, ``rounds`` times or until a round changes fewer than
-    ``settle`` of the object's pixels; with ``region`` (a bool array per view) only those pixels change. Returns
+    ``settle`` of the object's pixels; with ``region`` (a bool array per view) only those pixels change, and a round
+    that changes more than the one before is undone and ends them (it eats into the object). Returns
     (masks, the last round's hull silhouettes, the fraction each round changed)."""
     kernel = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
     current, sil, changed = start, [], []
@@ -477,6 +478,8 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
         new = [remove_specks(m, cfg.speck_fraction) for m in new]
         flips = sum(int((a != b).sum()) for a, b in zip(new, current))
         changed.append(flips / max(1, sum(int(m.sum()) for m in new)))
+        if region is not None and len(changed) > 1 and changed[-1] > changed[-2]:
+            break  # growing, not settling: the rounds eat into the object (one lying low on its floor); kept before
         current = new
         if changed[-1] < settle:
             break

@@ -126,6 +126,16 @@ def renders(ws: Workspace, n: int = 4, out_dir: Path | None = None) -> list[tupl
     return out
 
 
+def rung_in_words(rung: dict) -> str:
+    """One rung of the cameras stage's stamp (``rungs``) in words: what it registered in how long, or why not."""
+    if "skipped" in rung:
+        return f"{rung['rung']}: not tried ({rung['skipped']})"
+    return (f"{rung['rung']}: {rung.get('registered', 0)} registered in {rung.get('seconds', 0)} s"
+            + (f", {len(rung['dropped'])} views with wrong poses dropped" if rung.get("dropped") else "")
+            + (f", rejected ({rung['rejected']} poses not credible or not agreeing)" if rung.get("rejected") else "")
+            + (f", {rung['error']}" if rung.get("error") else ""))
+
+
 def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
     """SfM (the ladder's rungs) and the support plane, in words."""
     out = ["<h2>Cameras and support</h2><ul>"]
@@ -135,10 +145,7 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
                    f"{video['frames_in_clip']} frames, the sharpest of each equal stretch of it (frames/, "
                    "frames/frames.json).</li>")
     if cameras_stamp.get("rungs"):
-        steps = "; ".join(f"{r['rung']}: {r.get('registered', 0)} registered in {r['seconds']} s"
-                          + (f", {len(r['dropped'])} views with wrong poses dropped" if r.get("dropped") else "")
-                          + (f", rejected ({r['rejected']} poses not credible)" if r.get("rejected") else "")
-                          + (f", {r['error']}" if r.get("error") else "") for r in cameras_stamp["rungs"])
+        steps = "; ".join(rung_in_words(r) for r in cameras_stamp["rungs"])
         out.append(f"<li>SfM ladder: {html.escape(steps)} → kept <b>{html.escape(str(cameras_stamp.get('rung')))}</b>"
                    "</li>")
     object_note = cameras_stamp.get("object_matches")  # the object's matches verified again (large photos)

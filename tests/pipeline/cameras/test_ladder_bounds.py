@@ -8,11 +8,21 @@ import cv2
 import numpy as np
 import yaml
 
+from dvr.cameras import load_cameras
+from dvr.data import list_images
+from dvr.metrics import pose_errors
+from pipeline.cameras.config import CamerasConfig
 from pipeline.cameras.export import left_out
+from pipeline.cameras.mapping import _judge
 from pipeline.cameras.sfm import LADDER, _extract, ladder, number_by_name, shortfalls
 from pipeline.cli import main
+from pipeline.colmaplib import pycolmap
 from synth import scene_from_dict, write_scene
 from tests.conftest import ROOT
+
+
+def _centres(c):
+    return c.centers @ c.scale_mat[:3, :3].T + c.scale_mat[:3, 3]
 
 
 def _torus_photos(tmp_path, n_views: int):
@@ -46,11 +56,13 @@ def test_a_model_short_of_enough_photos_climbs():
     assert shortfalls({**stats, "registered": 19}, enough_registered=0.9) == ["19/23 registered"]
 
 
-def test_later_rungs_extract_fewer_features_for_many_photos():
+def test_rungs_extract_fewer_features_for_many_photos():
     few, many = ladder("default", "merge", 8192, n_photos=20), ladder("default", "merge", 8192, n_photos=60)
     assert [r.max_features for r in few] == [8192] + [16384] * 5
-    assert [r.max_features for r in many] == [8192] * 6  # 16 k × 30 / 60 is the first rung's 8 k
-    assert ladder("default", "guided", 4096, n_photos=45)[1].max_features == 11264  # 16 k × 30 / 45, rounded to 1 k
+    assert [r.max_features for r in many] == [4096] + [8192] * 5  # 8 k and 16 k × 30 / 60
+    assert [r.max_features for r in ladder("default", "guided", 8192, n_photos=45)] == [5120, 11264]  # to 1 k
+    assert [r.max_features for r in ladder("default", "guided", 8192, n_photos=200)] == [4096, 4096]  # floors
+    assert ladder("default", "default", 2048, n_photos=200)[0].max_features == 2048  # never more than asked
 
 
 def test_the_time_budget_ends_the_climb(tmp_path, capsys):
@@ -60,12 +72,45 @@ def test_the_time_budget_ends_the_climb(tmp_path, capsys):
     images = _torus_photos(tmp_path, 12)
     ws = tmp_path / "ws"
     rc = main(["cameras", str(ws), "--images", str(images), "--cameras.sfm-seconds", "0.001",
-               "--cameras.sfm-seconds-per-photo", "0.001", "--cameras.no-board"])
+               "--cameras.sfm-seconds-per-photo", "0.001", "--cameras.no-board", "--cameras.no-global-mapper"])
     captured = capsys.readouterr()
     err = captured.err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "photos registered" in err[0], err
     assert "is spent; rungs not tried: guided, dsp, relaxed, global, merge" in captured.out
     assert "rung guided:" not in captured.out and not (ws / "cameras.npz").exists()
+
+
+def test_the_global_mapper_poses_what_the_incremental_one_left_out(tmp_path, capsys):
+    """The same 12 photos: the incremental mapper poses two of them; COLMAP's global mapper, on the same matches
+    even with the budget spent, poses all 12 at their true poses, and the model is kept because its rotations agree
+    with the incremental model's on the photos both posed. Against a model that turns some of those photos away
+    (the phone's mouse through the global mapper: 32 of 59 photos over 5° off), the global model is rejected."""
+    images = _torus_photos(tmp_path, 12)
+    ws = tmp_path / "ws"
+    assert main(["cameras", str(ws), "--images", str(images), "--cameras.sfm-seconds", "0.001",
+                 "--cameras.sfm-seconds-per-photo", "0.001", "--cameras.no-board"]) == 0
+    out = capsys.readouterr().out
+    stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
+    assert [r["rung"] for r in stamp["rungs"]] == ["default", "default-global"], stamp["rungs"]
+    assert stamp["rungs"][0]["registered"] <= 6 and stamp["rung"] == "default-global" and stamp["registered"] == 12
+    assert "rung default-global: registered 12/12" in out
+    est, gt = load_cameras(ws / "cameras.npz"), load_cameras(tmp_path / "syn" / "cameras.npz")
+    idx = [int(p.stem) for p in list_images(ws / "images")]
+    err = pose_errors(_centres(est), est.R, _centres(gt)[idx], gt.R[idx])
+    assert err["center_err_rel_max"] < 0.02 and err["rot_err_deg_max"] < 1.0, err
+
+    ladder_dir = ws / "sfm" / "ladder"
+    mapped = pycolmap.Reconstruction(ladder_dir / "default-global" / "model")
+    turned = pycolmap.Reconstruction(mapped)
+    for i in sorted(turned.reg_image_ids())[::2]:  # half the photos turned 40° about the vertical
+        frame = turned.frame(turned.image(i).frame_id)
+        R = frame.rig_from_world.rotation.matrix() @ cv2.Rodrigues(np.array([0, 0, np.radians(40)]))[0]
+        frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R), frame.rig_from_world.translation)
+    cfg, names = CamerasConfig(), [p.stem for p in images.iterdir()]
+    judged = _judge(mapped, "default-global", 1.0, {}, None, ws / "sfm" / "input", names, cfg, None, [], [turned])
+    assert judged is None and "6 rotations disagree with the incremental mapper's by over 5°" in capsys.readouterr().out
+    judged = _judge(mapped, "default-global", 1.0, {}, None, ws / "sfm" / "input", names, cfg, None, [], [mapped])
+    assert judged is not None and judged[0]["registered"] == 12
 
 
 def test_photos_are_numbered_by_name_whatever_order_extraction_finished(tmp_path):
