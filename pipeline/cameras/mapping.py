@@ -22,6 +22,7 @@ from pipeline.cameras.pose_sanity import axes_convergence, model_views, pose_san
 from pipeline.cameras.progress import heartbeat
 from pipeline.cameras.sfm import (
     RUNG_NAMES,
+    Rung,
     ladder,
     model_stats,
     refine_model,
@@ -154,26 +155,21 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
         t0 = time.perf_counter()
         rec, database, secs, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed,
                                             base, sfm_threads(cfg), deadline, budget / 2 if step == 0 else None)
-        references = [best[1]] if rung.mapper == "global" and best is not None else []
+        references = [best[1]] if rung.mapper == "global" and best is not None else []  # the ladder's global rung
         judged = _judge(rec, rung.name, time.perf_counter() - t0, secs, err, inp, names, cfg, rejected, tried,
                         references)
         if judged is None:
             continue
-        best = _better(best, judged[0], rec, rung.name, database)
-        if judged[1] and rung.mapper == "incremental" and _global_may_run(cfg, judged[0], step, deadline):
-            t0 = time.perf_counter()
-            again = replace(rung, name=f"{rung.name}-global", mapper="global")  # the same features and matches
-            grec, gdb, gsecs, gerr = run_rung(work, inp, groups, again, cfg.camera_model, cfg.matching, cfg.seed,
-                                              None, sfm_threads(cfg), max(deadline, time.time() + budget / 2))
-            gjudged = _judge(grec, again.name, time.perf_counter() - t0, gsecs, gerr, inp, names, cfg, None, tried,
-                             incremental_models(work / rung.name / "models"))
-            if gjudged is not None:
-                best = _better(best, gjudged[0], grec, again.name, gdb)
-                judged = gjudged if not gjudged[1] else judged
+        best = _better(best, judged[0], rec, rung, database)
         if not judged[1]:
             break
+    if best is not None and cfg.global_mapper and best[2].mapper == "incremental" and \
+            best[0][0] < cfg.enough_registered * len(names):  # the ladder is over and the model lacks photos
+        again = _global_on_same_matches(work, inp, groups, best[2], cfg, names, budget, tried)
+        if again is not None:
+            best = _better(best, *again)
     _require_credible(None if best is None else best[1], rejected, inp, len(names), cfg.min_registered_fraction)
-    return best[1], inp, best[3], best[2], tried
+    return best[1], inp, best[3], best[2].name, tried
 
 
 def _judge(rec, name: str, seconds: float, steps: dict, err: str | None, inp: Path, names: list[str],
@@ -211,17 +207,24 @@ def _judge(rec, name: str, seconds: float, steps: dict, err: str | None, inp: Pa
     return stats, short
 
 
-def _better(best, stats: dict, rec, name: str, database: Path):
+def _better(best, stats: dict, rec, rung: Rung, database: Path):
     """The better of the ladder's ``best`` so far and this model: more photos, then a smaller error."""
     key = (stats["registered"], -stats["mean_reprojection_error"])
-    return (key, rec, name, database) if best is None or key > best[0] else best
+    return (key, rec, rung, database) if best is None or key > best[0] else best
 
 
-def _global_may_run(cfg: CamerasConfig, stats: dict, step: int, deadline: float) -> bool:
-    """Whether COLMAP's global mapper maps an incremental rung's matches again: ``cfg.global_mapper``, the model
-    lacks photos, and it is the first rung (which always finishes) or time is left."""
-    lacking = stats["registered"] < cfg.enough_registered * stats["total"]
-    return cfg.global_mapper and lacking and (step == 0 or time.time() < deadline - MIN_RUNG_SECONDS)
+def _global_on_same_matches(work: Path, inp: Path, groups: list[list[str]], rung: Rung, cfg: CamerasConfig,
+                            names: list[str], budget: float, tried: list):
+    """COLMAP's global mapper on the features and matches of the incremental ``rung`` (reused, not made again),
+    judged against the models the incremental mapper made of them (:func:`_judge`); stopped when it runs past half
+    the ladder's ``budget``. Returns (stats, model, its rung, database) or None."""
+    t0 = time.perf_counter()
+    again = replace(rung, name=f"{rung.name}-global", mapper="global")
+    rec, database, steps, err = run_rung(work, inp, groups, again, cfg.camera_model, cfg.matching, cfg.seed, None,
+                                         sfm_threads(cfg), time.time() + budget / 2)
+    judged = _judge(rec, again.name, time.perf_counter() - t0, steps, err, inp, names, cfg, None, tried,
+                    incremental_models(work / rung.name / "models"))
+    return None if judged is None else (judged[0], rec, again, database)
 
 
 def incremental_models(folder: Path) -> list:

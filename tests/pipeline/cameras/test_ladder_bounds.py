@@ -81,9 +81,9 @@ def test_the_time_budget_ends_the_climb(tmp_path, capsys):
 
 
 def test_the_global_mapper_poses_what_the_incremental_one_left_out(tmp_path, capsys):
-    """The same 12 photos: the incremental mapper poses two of them; COLMAP's global mapper, on the same matches
-    even with the budget spent, poses all 12 at their true poses, and the model is kept because its rotations agree
-    with the incremental model's on the photos both posed. Against a model that turns some of those photos away
+    """The same 12 photos: the incremental mapper poses two of them and the budget ends the ladder; COLMAP's global
+    mapper, on the same matches, poses all 12 at their true poses, and the model is kept because its rotations
+    agree with the incremental model's on the photos both posed. Against a model that turns some of those photos away
     (the phone's mouse through the global mapper: 32 of 59 photos over 5° off), the global model is rejected."""
     images = _torus_photos(tmp_path, 12)
     ws = tmp_path / "ws"
@@ -91,7 +91,7 @@ def test_the_global_mapper_poses_what_the_incremental_one_left_out(tmp_path, cap
                  "--cameras.sfm-seconds-per-photo", "0.001", "--cameras.no-board"]) == 0
     out = capsys.readouterr().out
     stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
-    assert [r["rung"] for r in stamp["rungs"]] == ["default", "default-global"], stamp["rungs"]
+    assert [r["rung"] for r in stamp["rungs"] if "skipped" not in r] == ["default", "default-global"], stamp["rungs"]
     assert stamp["rungs"][0]["registered"] <= 6 and stamp["rung"] == "default-global" and stamp["registered"] == 12
     assert "rung default-global: registered 12/12" in out
     est, gt = load_cameras(ws / "cameras.npz"), load_cameras(tmp_path / "syn" / "cameras.npz")
