@@ -22,6 +22,12 @@ _STEPS: tuple[tuple[re.Pattern, Callable[[re.Match], str]], ...] = (
     (re.compile(r"Loading database"), lambda m: "mapping: loading the matches"),
     (re.compile(r"Finding good initial image pair"), lambda m: "mapping: choosing the first two photos"),
     (re.compile(r"num_reg_frames=(\d+)"), lambda m: f"mapping, {m[1]} photos registered"),
+    (re.compile(r"Loading (\w+)\.\.\."), lambda m: f"mapping: loading the {m[1]}"),
+    (re.compile(r"=== Reconstructing component (\d+) / (\d+) with (\d+) images"),
+     lambda m: f"global mapping: part {m[1]}/{m[2]}, {m[3]} photos"),
+    (re.compile(r"=== Running (.+?) ==="), lambda m: f"global mapping: {m[1]}"),
+    (re.compile(r"Global bundle adjustment iteration (\d+) / (\d+)"),
+     lambda m: f"global mapping: bundle adjustment, pass {m[1]}/{m[2]}"),
     (re.compile(r"\] Running (.+?)\.*\s*$"), lambda m: f"mapping: {m[1].lower()}"),
 )
 

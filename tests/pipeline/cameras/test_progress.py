@@ -34,6 +34,25 @@ def test_log_progress_follows_the_log_as_it_grows(tmp_path):
     assert minutes(42.4) == "42 s" and minutes(185) == "3 min 05 s"
 
 
+GLOBAL_LOG = """I20261129 02:50:35.323441 1 database_cache.cc:144] Loading matches...
+I20261129 02:50:35.813884 1 global_pipeline.cc:319] === Reconstructing component 1 / 2 with 62 images ===
+I20261129 02:50:35.887626 1 global_mapper.cc:565] === Running track establishment ===
+I20261129 02:50:56.416378 1 global_mapper.cc:391] Global bundle adjustment iteration 2 / 3, fixed-rotation stage
+"""
+
+
+def test_the_global_mappers_steps_are_said(tmp_path):
+    """COLMAP's global mapper logs its own steps: each says what it does, not "starting"."""
+    log = tmp_path / "rung.log"
+    watch, steps = LogProgress(log), []
+    for line in GLOBAL_LOG.splitlines(keepends=True):
+        with open(log, "a") as f:
+            f.write(line)
+        steps.append(watch.update())
+    assert steps == ["mapping: loading the matches", "global mapping: part 1/2, 62 photos",
+                     "global mapping: track establishment", "global mapping: bundle adjustment, pass 2/3"]
+
+
 def _child(tmp_path, seconds: float):
     log = tmp_path / "child.log"
     code = ("import sys, time; print('x feature_extraction.cc:270] Processed file [3/10]', flush=True); "
