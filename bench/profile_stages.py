@@ -48,11 +48,10 @@ def where(file: str) -> str:
 
 def top_functions(stats: pstats.Stats, n: int) -> list[dict]:
     """The ``n`` functions with the most own time in ``stats``: name, calls, own and cumulative seconds."""
-    rows = []
-    for (file, line, func), (_, calls, own, cumulative, _) in stats.stats.items():  # type: ignore[attr-defined]
-        name = func if file == "~" else f"{where(file)}:{line}({func})"
-        rows.append({"function": name, "calls": calls, "own_s": round(own, 3), "cumulative_s": round(cumulative, 3)})
-    return sorted(rows, key=lambda r: -r["own_s"])[:n]
+    entries = sorted(stats.stats.items(), key=lambda e: -e[1][2])[:n]  # type: ignore[attr-defined]
+    return [{"function": func if file == "~" else f"{where(file)}:{line}({func})", "calls": calls,
+             "own_s": round(own, 3), "cumulative_s": round(cumulative, 3)}
+            for (file, line, func), (_, calls, own, cumulative, _) in entries]
 
 
 def profile_stage(name: str, ws: Path, cfg, images: Path | None) -> tuple[float, pstats.Stats]:

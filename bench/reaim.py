@@ -82,7 +82,9 @@ def _turn(theta: np.ndarray, focal: float) -> np.ndarray:
 
 def degrees_turned(Rd: np.ndarray) -> float:
     """The angle (degrees) of the rotation ``Rd``."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1.0, 1.0))))
+    from dvr.metrics import rotation_angle_deg
+
+    return float(rotation_angle_deg(Rd))
 
 
 def reaim(caster, K: np.ndarray, R: np.ndarray, centre: np.ndarray, photo: np.ndarray, mask: np.ndarray,

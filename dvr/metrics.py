@@ -61,6 +61,11 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     return s, R, t
 
 
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """The angle (degrees) of a rotation matrix, or of each in a stack (..., 3, 3)."""
+    return np.degrees(np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1, 1)))
+
+
 def pose_errors(centers_est: np.ndarray, R_est: np.ndarray, centers_gt: np.ndarray, R_gt: np.ndarray) -> dict:
     """Camera centre and rotation errors after a Sim(3) alignment of the estimated centres onto the GT ones."""
     s, R, t = umeyama(centers_est, centers_gt)
@@ -68,7 +73,7 @@ def pose_errors(centers_est: np.ndarray, R_est: np.ndarray, centers_gt: np.ndarr
     dc = np.linalg.norm(c - centers_gt, axis=1)
     # world→camera rotations: R_est_aligned = R_est R^T
     rel = np.einsum("nij,nkj->nik", R_est @ R.T, R_gt)
-    ang = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    ang = rotation_angle_deg(rel)
     radius = float(np.linalg.norm(centers_gt - centers_gt.mean(0), axis=1).mean())
     return {"center_err_mean": float(dc.mean()), "center_err_max": float(dc.max()), "orbit_radius": radius,
             "center_err_rel_max": float(dc.max() / radius), "rot_err_deg_mean": float(ang.mean()),

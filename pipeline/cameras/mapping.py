@@ -8,6 +8,7 @@ import sqlite3
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -142,10 +143,10 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     for step, rung in enumerate(rungs):
         base = None
         if rung.mapper == "extend":  # continue from the best model so far: only when it lacks photos
-            if best is None or best[1].num_reg_images() >= len(names):
+            if best is None or best.model.num_reg_images() >= len(names):
                 continue
-            base = (work / "merge-base", best[3])
-            write_model(best[1], base[0])
+            base = (work / "merge-base", best.database)
+            write_model(best.model, base[0])
         if step > 0 and time.time() > deadline - MIN_RUNG_SECONDS:  # the first rung always runs
             left = [r.name for r in rungs[step:]]
             print(f"cameras: the SfM time budget ({budget:.0f} s for {len(names)} photos: cameras.sfm-seconds, "
@@ -155,7 +156,7 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
         t0 = time.perf_counter()
         rec, database, secs, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed,
                                             base, sfm_threads(cfg), deadline, budget / 2 if step == 0 else None)
-        references = [best[1]] if rung.mapper == "global" and best is not None else []  # the ladder's global rung
+        references = [best.model] if rung.mapper == "global" and best is not None else []  # the ladder's global rung
         judged = _judge(rec, rung.name, time.perf_counter() - t0, secs, err, inp, names, cfg, rejected, tried,
                         references)
         if judged is None:
@@ -163,13 +164,13 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
         best = _better(best, judged[0], rec, rung, database)
         if not judged[1]:
             break
-    if best is not None and cfg.global_mapper and best[2].mapper == "incremental" and \
-            best[0][0] < cfg.enough_registered * len(names):  # the ladder is over and the model lacks photos
-        again = _global_on_same_matches(work, inp, groups, best[2], cfg, names, budget, tried)
+    if best is not None and cfg.global_mapper and best.rung.mapper == "incremental" and \
+            best.registered < cfg.enough_registered * len(names):  # the ladder is over and the model lacks photos
+        again = _global_on_same_matches(work, inp, groups, best.rung, cfg, names, budget, tried)
         if again is not None:
             best = _better(best, *again)
-    _require_credible(None if best is None else best[1], rejected, inp, len(names), cfg.min_registered_fraction)
-    return best[1], inp, best[3], best[2].name, tried
+    _require_credible(None if best is None else best.model, rejected, inp, len(names), cfg.min_registered_fraction)
+    return best.model, inp, best.database, best.rung.name, tried
 
 
 def _judge(rec, name: str, seconds: float, steps: dict, err: str | None, inp: Path, names: list[str],
@@ -207,10 +208,20 @@ def _judge(rec, name: str, seconds: float, steps: dict, err: str | None, inp: Pa
     return stats, short
 
 
-def _better(best, stats: dict, rec, rung: Rung, database: Path):
+class _Kept(NamedTuple):
+    """The ladder's best model so far: its photos and error, the model, the rung that made it, its database."""
+
+    registered: int
+    error: float
+    model: object
+    rung: Rung
+    database: Path
+
+
+def _better(best: _Kept | None, stats: dict, rec, rung: Rung, database: Path) -> _Kept:
     """The better of the ladder's ``best`` so far and this model: more photos, then a smaller error."""
-    key = (stats["registered"], -stats["mean_reprojection_error"])
-    return (key, rec, rung, database) if best is None or key > best[0] else best
+    new = _Kept(stats["registered"], stats["mean_reprojection_error"], rec, rung, database)
+    return new if best is None or (new.registered, -new.error) > (best.registered, -best.error) else best
 
 
 def _global_on_same_matches(work: Path, inp: Path, groups: list[list[str]], rung: Rung, cfg: CamerasConfig,

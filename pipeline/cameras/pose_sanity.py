@@ -28,6 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dvr.metrics import rotation_angle_deg
 from pipeline.inputs.photos import read_photo
 
 
@@ -172,8 +173,7 @@ def collapsed_views(views: list[View], image_dir: Path, coincident: float = 0.02
             if np.linalg.norm(a.center - b.center) > coincident * radius:
                 continue
             rel = b.R @ a.R.T
-            ang = np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1, 1)))
-            if ang > max_angle_deg:
+            if rotation_angle_deg(rel) > max_angle_deg:
                 continue
             for v in (a, b):
                 if v.name not in grey:
@@ -197,11 +197,6 @@ def thin_views(rec, min_points: int = 15) -> dict[str, str]:
     return out
 
 
-def _angles_deg(rel: np.ndarray) -> np.ndarray:
-    """Rotation angles (degrees) of a stack of rotation matrices."""
-    return np.degrees(np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1) / 2, -1, 1)))
-
-
 def rotation_disagreement(views: list[View], reference: list[View], tolerance_deg: float = 5.0) -> dict[str, float]:
     """Per photo that both models posed: the angle (degrees) between its rotation in ``views`` and in ``reference``
     once the two models' frames are aligned by the frame change most photos agree on (each photo's tried in turn,
@@ -212,11 +207,11 @@ def rotation_disagreement(views: list[View], reference: list[View], tolerance_de
     if not common:
         return {}
     change = np.stack([ref[v.name].T @ v.R for v in common])  # R_views = R_reference · change, per photo
-    between = _angles_deg(np.einsum("aji,bjk->abik", change, change))
+    between = rotation_angle_deg(np.einsum("aji,bjk->abik", change, change))
     agree = between[np.argmax((between <= tolerance_deg).sum(1))] <= tolerance_deg
     u, _, vt = np.linalg.svd(change[agree].sum(0))  # chordal mean of the agreeing photos' frame changes
     mean = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return dict(zip((v.name for v in common), _angles_deg(np.einsum("ji,njk->nik", mean, change)).tolist()))
+    return dict(zip((v.name for v in common), rotation_angle_deg(np.einsum("ji,njk->nik", mean, change)).tolist()))
 
 
 def pose_sanity(rec, image_dir: Path, min_points: int = 15) -> dict[str, str]:
