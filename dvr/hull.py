@@ -83,8 +83,10 @@ def near_object(masks: torch.Tensor, px) -> torch.Tensor:
 def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min_views: int = 1,
                  chunk: int = 65536, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
                  contact_band: float = 0.0, sparse_views: int = 0, near: torch.Tensor | None = None,
-                 min_framing: int = 1) -> torch.Tensor:
-    """True for points that ≥ ``min_views`` views see outside their mask, that fewer than ``min_framing`` views see
+                 min_framing: int = 1, min_fraction: float = 0.0) -> torch.Tensor:
+    """True for points that ≥ ``min_views`` views, and ≥ ``min_fraction`` of the views that see them, see outside their
+    mask (never more than all of those; a fraction lets a capture of many views outvote a few wrong masks), that
+    fewer than ``min_framing`` views see
     (project inside their image; 1: that no view sees), or that lie below the
     support plane ``ground`` (4,) when the object stands on one. Where fewer than ``sparse_views`` views see a point
     (the edge of the working sphere, which only a few photos frame), one view outside is enough: a vote of two
@@ -100,6 +102,8 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
                          f"{tuple(masks.shape)}")
     if min_framing < 1:
         raise ValueError(f"outside_hull: min_framing must be ≥ 1, got {min_framing}")
+    if not 0.0 <= min_fraction <= 1.0:
+        raise ValueError(f"outside_hull: min_fraction must lie in [0, 1], got {min_fraction}")
 
     def outside(p: torch.Tensor) -> torch.Tensor:
         """The test above for one chunk of points."""
@@ -107,7 +111,8 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
             n_out, n_seen = view_votes(p, P, masks, sizes)
         else:  # the masks and their sure-background maps read at one projection
             (n_out, n_far), n_seen = view_votes(p, P, torch.stack([masks, near], dim=1), sizes)
-        need = torch.clamp(n_seen, min=1, max=min_views)
+        need = torch.maximum(torch.full_like(n_seen, min_views), torch.ceil(min_fraction * n_seen - 1e-6).long())
+        need = torch.clamp(torch.minimum(need, n_seen), min=1)
         need = torch.where(n_seen < sparse_views, torch.ones_like(need), need)
         if ground is not None:
             hgt = plane_height(ground, p)

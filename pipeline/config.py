@@ -20,7 +20,7 @@ import yaml
 
 from dvr.config import TrainConfig
 from dvr.device import resolve_device
-from dvr.options import is_positive
+from dvr.options import is_fraction, is_positive
 from pipeline.cameras.config import CamerasConfig
 from pipeline.depth.config import DepthConfig
 from pipeline.masks.config import MasksConfig
@@ -111,14 +111,17 @@ def load_config(path: str | Path | None) -> Config:
     return cfg
 
 
-def _rule_broken(tp, value, positive: bool) -> str | None:
-    """What ``value`` of an option of type ``tp`` (``positive``: declared above 0, :mod:`dvr.options`) must be,
-    when it is not; None when it is fine."""
+def _rule_broken(tp, value, positive: bool, fraction: bool = False) -> str | None:
+    """What ``value`` of an option of type ``tp`` (``positive``: declared above 0, ``fraction``: declared within
+    [0, 1], :mod:`dvr.options`) must be, when it is not; None when it is fine."""
     if tp is bool:
         return None if isinstance(value, bool) else "true or false"
     if tp is int:
         ok = isinstance(value, int) and not isinstance(value, bool) and value >= (1 if positive else 0)
         return None if ok else "a whole number " + ("≥ 1" if positive else "≥ 0")
+    if tp is float and fraction:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and 0.0 <= value <= 1.0
+        return None if ok else "a number from 0 to 1"
     if tp is float:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and \
             (value > 0 if positive else value >= 0)
@@ -152,7 +155,7 @@ def check_config(cfg, where: str = "", here: bool = False) -> None:
                 raise ValueError(f"{name}: expected a mapping of its options, got {value!r}")
             check_config(value, name + ".", here)
             continue
-        rule = _rule_broken(tp, value, is_positive(hint))
+        rule = _rule_broken(tp, value, is_positive(hint), is_fraction(hint))
         if rule is not None:
             raise ValueError(f"--{name.replace('_', '-')} = {value!r}: must be {rule} (fix it on the command line "
                              "or in the YAML preset)")

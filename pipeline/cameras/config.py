@@ -14,12 +14,16 @@ class CamerasConfig:
 
     max_side_sfm: PositiveInt = 1600
     """Longest image side (px) SfM works at; larger photos are downscaled to it, never upscaled."""
+    sift_upsample_below: PositiveInt = 1000
+    """SIFT finds features on the photos upsampled twice when SfM sees them smaller than this (px): 3× the time."""
     max_side: PositiveInt = 400
     """Longest side (px) of the training images written to images/."""
     video_frames: PositiveInt = 48
     """Frames taken from a video given as --images: the sharpest of each of this many equal stretches of it."""
-    matching: Literal["auto", "exhaustive", "sequential"] = "auto"
-    """Image pairs to match: auto = exhaustive up to 80 images, sequential beyond."""
+    matching: Literal["auto", "exhaustive", "similar", "sequential"] = "auto"
+    """Image pairs to match: auto = every pair up to 40 photos, beyond that each photo with its most similar ones."""
+    pair_neighbours: PositiveInt = 15
+    """With matching similar (auto beyond 40 photos): the photos each photo is matched with, the most similar first."""
     start_rung: Literal["default", "guided", "dsp", "relaxed", "global", "merge"] = "default"
     """First rung of the SfM ladder; a later rung runs only when the previous one leaves the model short."""
     last_rung: Literal["default", "guided", "dsp", "relaxed", "global", "merge"] = "merge"

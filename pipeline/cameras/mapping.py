@@ -29,6 +29,7 @@ from pipeline.cameras.sfm import (
     refine_model,
     retriangulate,
     run_rung,
+    rung_seconds,
     shortfalls,
     verify_again,
     verify_at_poses,
@@ -128,18 +129,22 @@ def sfm_budget(cfg: CamerasConfig, n_photos: int) -> float:
 
 def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     """The SfM ladder, within its time budget (:func:`sfm_budget`): the first rung always finishes (its mapper stops
-    at the budget's end, or after half the budget when that is later), later rungs run in what is left of it.
+    at the budget's end, or after half the budget when that is later), later rungs run in what is left of it, each
+    only when its features and matches, estimated from the last rung that made its own
+    (:func:`pipeline.cameras.sfm.rung_seconds`), leave it time to map.
     Returns (model as mapped, folder of the images SfM saw, its COLMAP database, the rung's name, summary of the
     rungs tried)."""
     with heartbeat(f"cameras: reading the {len(photos)} photos"):
-        inp, groups, _ = prepare_sfm_input(ws, photos, cfg)
+        inp, groups, shapes = prepare_sfm_input(ws, photos, cfg)
     names = [p.stem for p in photos]
+    sfm_side = max(max(seen) for _, seen in shapes)
     work = ws.root / "sfm" / "ladder"
     work.mkdir()
     budget = sfm_budget(cfg, len(names))
     deadline = time.time() + budget
-    tried, best, rejected = [], None, {}
-    rungs = ladder(cfg.start_rung, cfg.last_rung, cfg.max_features, cfg.max_h_inlier_ratio, len(names))
+    tried, best, rejected, measured, made_by = [], None, {}, None, {}
+    rungs = ladder(cfg.start_rung, cfg.last_rung, cfg.max_features, cfg.max_h_inlier_ratio, len(names), sfm_side,
+                   cfg.pair_neighbours, cfg.sift_upsample_below)
     for step, rung in enumerate(rungs):
         base = None
         if rung.mapper == "extend":  # continue from the best model so far: only when it lacks photos
@@ -153,9 +158,19 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
                   f"cameras.sfm-seconds-per-photo) is spent; rungs not tried: {', '.join(left)}")
             tried += [{"rung": r, "skipped": "time budget spent"} for r in left]
             break
+        need, left = (0.0 if measured is None else rung_seconds(*measured, rung)), deadline - time.time()
+        if step > 0 and need > left - MIN_RUNG_SECONDS:  # it would not get to its mapping
+            why = f"its features and matches would take about {need:.0f} s, {left:.0f} s of the SfM time budget left"
+            print(f"cameras: rung {rung.name} not tried: {why}")
+            tried.append({"rung": rung.name, "skipped": why})
+            continue
         t0 = time.perf_counter()
         rec, database, secs, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed,
                                             base, sfm_threads(cfg), deadline, budget / 2 if step == 0 else None)
+        if secs.get("features", 0) > 0 and secs.get("matching", 0) > 0:  # both made afresh: the costs to scale
+            measured = (rung, secs)
+        if database is not None and rung.mapper != "extend":
+            made_by.setdefault(database, rung)  # the rung whose features and matches these are
         references = [best.model] if rung.mapper == "global" and best is not None else []  # the ladder's global rung
         judged = _judge(rec, rung.name, time.perf_counter() - t0, secs, err, inp, names, cfg, rejected, tried,
                         references)
@@ -164,9 +179,10 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
         best = _better(best, judged[0], rec, rung, database)
         if not judged[1]:
             break
-    if best is not None and cfg.global_mapper and best.rung.mapper == "incremental" and \
+    source = None if best is None else made_by.get(best.database, best.rung)  # a merged model: its matches' rung
+    if best is not None and cfg.global_mapper and source.mapper == "incremental" and \
             best.registered < cfg.enough_registered * len(names):  # the ladder is over and the model lacks photos
-        again = _global_on_same_matches(work, inp, groups, best.rung, cfg, names, budget, tried)
+        again = _global_on_same_matches(work, inp, groups, source, cfg, names, budget, tried)
         if again is not None:
             best = _better(best, *again)
     _require_credible(None if best is None else best.model, rejected, inp, len(names), cfg.min_registered_fraction)

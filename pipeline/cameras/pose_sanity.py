@@ -84,20 +84,27 @@ def aim_errors(views: list[View], point: np.ndarray) -> tuple[np.ndarray, np.nda
     return np.asarray(err), np.asarray(inside)
 
 
-def _seen_by_most(views: list[View], C: np.ndarray, D: np.ndarray, max_pairs: int = 400) -> np.ndarray:
+def _seen_by_most(views: list[View], C: np.ndarray, D: np.ndarray, max_pairs: int = 400,
+                  distance_factor: float = 3.0) -> np.ndarray:
     """Which views see the point most views see, among the points nearest two views' axes (every pair of views, or
-    ``max_pairs`` of them spread evenly): the least-squares convergence of all axes can be pulled out of every photo
-    by a few views placed far off (a global mapper's weakly tied photos at 9–18× the others' distance)."""
+    ``max_pairs`` of them spread evenly), and stand within ``distance_factor`` × their median distance of it: the
+    least-squares convergence of all axes can be pulled out of every photo by a few views placed far off (a global
+    mapper's weakly tied photos at 9–550× the others' distance, whose axes pass the object by a small angle but
+    far from its centre)."""
     i, j = np.triu_indices(len(views), 1)
     pick = np.linspace(0, len(i) - 1, min(len(i), max_pairs)).round().astype(int)
-    best, best_score = None, (-1, 0.0)
+    best, best_score, best_point = None, (-1, 0.0), None
     for a, b in zip(i[pick], j[pick]):
         p = axes_convergence(C[[a, b]], D[[a, b]])
         err, inside = aim_errors(views, p)
         score = (int(inside.sum()), -float(err[inside].sum()))
         if score > best_score:
-            best, best_score = inside, score
-    return best if best is not None and best.sum() >= 2 else np.ones(len(views), bool)
+            best, best_score, best_point = inside, score, p
+    if best is None or best.sum() < 2:
+        return np.ones(len(views), bool)
+    dist = np.linalg.norm(C - best_point, axis=1)
+    near = best & (dist < distance_factor * np.median(dist[best]))
+    return near if near.sum() >= 2 else best
 
 
 def robust_convergence(views: list[View], rounds: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

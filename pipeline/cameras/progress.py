@@ -19,6 +19,8 @@ _STEPS: tuple[tuple[re.Pattern, Callable[[re.Match], str]], ...] = (
     (re.compile(r"Processing block \[(\d+)/(\d+), (\d+)/(\d+)\]"),
      lambda m: f"matching, block {(int(m[1]) - 1) * int(m[4]) + int(m[3])}/{int(m[2]) * int(m[4])}"),
     (re.compile(r"Matching image \[(\d+)/(\d+)\]"), lambda m: f"matching, photo {m[1]}/{m[2]}"),
+    (re.compile(r"Matching (\d+) pairs of similar photos"), lambda m: f"matching {m[1]} pairs of similar photos"),
+    (re.compile(r"Processing block \[(\d+)/(\d+)\]"), lambda m: f"matching, block {m[1]}/{m[2]}"),
     (re.compile(r"Loading database"), lambda m: "mapping: loading the matches"),
     (re.compile(r"Finding good initial image pair"), lambda m: "mapping: choosing the first two photos"),
     (re.compile(r"num_reg_frames=(\d+)"), lambda m: f"mapping, {m[1]} photos registered"),

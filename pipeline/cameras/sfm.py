@@ -3,7 +3,8 @@
 Each rung is a set of COLMAP settings an expert would try next on a capture that default SIFT starves (small
 images, weakly textured objects, grazing views of a floor):
 
-1. ``default``   SIFT (8 k features), exhaustive / sequential matching, incremental mapping;
+1. ``default``   SIFT (8 k features), every pair matched (for many photos each photo with its most similar ones,
+                 :mod:`pipeline.cameras.pairs`), incremental mapping;
 2. ``guided``    16 k features and guided matching (matches re-searched along the epipolar lines);
 3. ``dsp``       DSP-SIFT with affine shape estimation (descriptors pooled over scales, robust to the affine
                  distortion of slanted surfaces), guided matching;
@@ -52,6 +53,10 @@ class Rung:
     guided: bool = False
     relaxed: bool = False
     mapper: str = "incremental"
+    upsample: bool = True
+    """SIFT starts from the photo upsampled twice (COLMAP's first octave -1); off for large photos (:func:`ladder`)."""
+    pair_neighbours: int = 15
+    """With matching ``similar``: each photo is matched with this many of its most similar photos."""
     max_h_inlier_ratio: float = 0.8
     """COLMAP's two-view verification: a pair whose homography explains more than this fraction of its epipolar
     inliers is "planar", and then keeps the homography's inliers when they are more (``cameras.max_h_inlier_ratio``;
@@ -60,7 +65,7 @@ class Rung:
     @property
     def features_key(self) -> str:
         """Name of the feature database this rung extracts into (rungs with the same features share it)."""
-        return f"f{self.max_features}{'-dsp' if self.dsp else ''}"
+        return f"f{self.max_features}{'-dsp' if self.dsp else ''}{'' if self.upsample else '-o0'}"
 
     @property
     def matches_key(self) -> str:
@@ -84,16 +89,28 @@ count squared times the feature count squared."""
 MIN_FIRST_FEATURES = 4096
 """The first rung's features per photo are never cut below this for many photos (the blowtorch's 67 photos: 4096
 features match in 150 s where 8192 take 340 s; the first rung poses the same photos with either)."""
+UPSAMPLE_BELOW = 1000
+"""SIFT upsamples the photos SfM sees only when their longest side is below this (px) by default
+(``cameras.sift-upsample-below``): a 1600-px photo has features enough at its own size, found in a third of the
+time."""
+PAIRS_PER_BLOCK = 50
+"""Matching ``similar`` matches the pairs in blocks of this many."""
+SIMILAR_PAIRS_ABOVE = 40
+"""Matching ``auto`` matches every pair up to this many photos; beyond, each photo with its most similar ones
+(:mod:`pipeline.cameras.pairs`)."""
 
 
 def ladder(start: str, stop: str, max_features: int = 8192, max_h_inlier_ratio: float = 0.8,
-           n_photos: int = 0) -> list[Rung]:
+           n_photos: int = 0, sfm_side: int = 0, pair_neighbours: int = 15,
+           upsample_below: int = UPSAMPLE_BELOW) -> list[Rung]:
     """The rungs from ``start`` to ``stop`` (names of :data:`RUNG_NAMES`), in order; the first rung extracts
     ``max_features`` features, the others at least twice that and 16 k; for ``n_photos`` more than
     :data:`MANY_PHOTOS` each rung that many fewer in proportion (matching them all then costs what it costs for
     :data:`MANY_PHOTOS`), the first rung not below :data:`MIN_FIRST_FEATURES` (nor above ``max_features``), the
     others never below the first rung's; every rung verifies its matches with ``max_h_inlier_ratio``
-    (:class:`Rung`)."""
+    (:class:`Rung`) and upsamples the photos for SIFT only when their longest side ``sfm_side`` is below
+    ``upsample_below`` (0: unknown, upsampled), and matches each photo with its ``pair_neighbours`` most similar
+    ones where the matching picks pairs by similarity."""
     for name in (start, stop):
         if name not in RUNG_NAMES:
             raise ValueError(f"unknown SfM rung '{name}' (one of {', '.join(RUNG_NAMES)})")
@@ -109,8 +126,34 @@ def ladder(start: str, stop: str, max_features: int = 8192, max_h_inlier_ratio: 
 
         first = max(min(max_features, MIN_FIRST_FEATURES), fewer(max_features))
         more = max(first, fewer(more))
-    return [replace(r, max_features=first if r.name == "default" else more,
-                    max_h_inlier_ratio=max_h_inlier_ratio) for r in LADDER[i : j + 1]]
+    return [replace(r, max_features=first if r.name == "default" else more, max_h_inlier_ratio=max_h_inlier_ratio,
+                    upsample=sfm_side < upsample_below, pair_neighbours=pair_neighbours) for r in LADDER[i : j + 1]]
+
+
+UPSAMPLE_COST = 3.0
+"""SIFT on the photos upsampled twice takes about this many times as long (the blowtorch's 67 photos: 170 s, 57 s)."""
+DSP_COST = 3.0
+"""DSP-SIFT with affine shapes takes about this many times plain SIFT's time."""
+GUIDED_COST = 2.0
+"""Guided matching takes about this many times plain matching's time at the same features (the blowtorch's 589
+pairs of 7168 features: about 200 s, where 4096 features take 35 s unguided)."""
+
+
+def rung_seconds(done: Rung, steps: dict, nxt: Rung) -> float:
+    """Seconds the rung ``nxt`` will take for the features and matches it does not share with the rung ``done``,
+    whose steps took ``steps`` seconds (``features``, ``matching``): features in proportion to SIFT's work, matches
+    to the features' count squared (every feature of one photo against every one of the other's)."""
+    if nxt.mapper == "extend":  # continues from a model with its own features and matches
+        return 0.0
+    features = 0.0
+    if nxt.features_key != done.features_key:
+        features = steps.get("features", 0.0) * (UPSAMPLE_COST ** (nxt.upsample - done.upsample)) * (
+            DSP_COST ** (nxt.dsp - done.dsp))
+    matching = 0.0
+    if nxt.matches_key != done.matches_key:
+        matching = steps.get("matching", 0.0) * (nxt.max_features / done.max_features) ** 2 * (
+            GUIDED_COST ** (nxt.guided - done.guided))
+    return features + matching
 
 
 # ----------------------------------------------------------------------------- one rung (child process)
@@ -126,6 +169,7 @@ def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera
     ext.sift.max_num_features = rung.max_features
     ext.sift.domain_size_pooling = rung.dsp
     ext.sift.estimate_affine_shape = rung.dsp
+    ext.sift.first_octave = -1 if rung.upsample else 0
     ext.num_threads = threads
     mode = pycolmap.CameraMode.PER_IMAGE if per_image else pycolmap.CameraMode.SINGLE
     for names in groups:
@@ -164,8 +208,11 @@ def number_by_name(db: Path) -> None:
 
 
 def match_features(db: Path, n_images: int, rung: Rung, matching: str, seed: int, threads: int = -1) -> None:
-    """Match and verify; ``seed``: the verification's RANSAC seed (with -1, COLMAP verifies guided DSP-SIFT matches
-    differently on every run)."""
+    """Match and verify the pairs ``matching`` names: every pair (``exhaustive``), each photo with the next ones
+    in name order (``sequential``), each with the rung's ``pair_neighbours`` most similar (``similar``,
+    :func:`pipeline.cameras.pairs.write_similar_pairs`), or ``auto`` (every pair up to :data:`SIMILAR_PAIRS_ABOVE`
+    photos, else the similar ones); ``seed``: the verification's RANSAC seed (with -1, COLMAP verifies guided
+    DSP-SIFT matches differently on every run)."""
     from pipeline.colmaplib import pycolmap
 
     opts = pycolmap.FeatureMatchingOptions()
@@ -174,10 +221,19 @@ def match_features(db: Path, n_images: int, rung: Rung, matching: str, seed: int
     verify = pycolmap.TwoViewGeometryOptions()
     verify.ransac.random_seed = seed
     verify.max_H_inlier_ratio = rung.max_h_inlier_ratio
-    if matching == "exhaustive" or (matching == "auto" and n_images <= 80):
+    if matching == "exhaustive" or (matching == "auto" and n_images <= SIMILAR_PAIRS_ABOVE):
         pycolmap.match_exhaustive(db, matching_options=opts, verification_options=verify)
-    else:
+    elif matching == "sequential":
         pycolmap.match_sequential(db, matching_options=opts, verification_options=verify)
+    else:
+        from pipeline.cameras.pairs import write_similar_pairs
+
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = str(db.with_name(db.stem + "-pairs.txt"))
+        pairing.block_size = PAIRS_PER_BLOCK  # COLMAP logs each block: the progress lines count them
+        n_pairs = write_similar_pairs(db, Path(pairing.match_list_path), rung.pair_neighbours)
+        print(f"Matching {n_pairs} pairs of similar photos ({rung.pair_neighbours} per photo)", flush=True)
+        pycolmap.match_image_pairs(db, matching_options=opts, pairing_options=pairing, verification_options=verify)
 
 
 def _map(db: Path, images: Path, out: Path, rung: Rung, seed: int, base: str = "", threads: int = -1,

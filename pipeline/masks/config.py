@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dvr.options import PositiveFloat, PositiveInt
+from dvr.options import Fraction, PositiveFloat, PositiveInt
 
 
 @dataclass
@@ -15,6 +15,8 @@ class MasksConfig:
     """Resolution (cells per axis) of the visual hull used for multi-view consistency."""
     carve_min_views: int = 2
     """A point is background only when at least this many views see it outside their mask."""
+    carve_fraction: Fraction = 0.0
+    """A point is background only when this share of the views that see it, too, see it outside their mask; 0: off."""
     vote_rounds: int = 2
     """Rounds of multi-view voting: the hull of the current masks, then GrabCut inside its silhouette."""
     floor_rounds: int = 6

@@ -17,11 +17,12 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
    object's sphere its background labels are only probable (:func:`support_in_sphere`);
 2. GrabCut in every image, seeded by those;
 3. multi-view consistency, ``vote_rounds`` times: the visual hull of all masks, carving a point only when
-   ≥ ``carve_min_views`` views see it as background, is re-projected into every view as an upper bound, and
-   GrabCut refines inside it to the image edges — a mistake in one view is outvoted by the others; with a support
-   plane, up to ``floor_rounds`` more rounds that change only the pixels whose ray passes under the object
-   (:func:`low_band`): the floor between an object's legs, in its shadow and seen only by the views along the
-   legs, leaves the masks a little more each round, and the rounds stop where they grow instead (:func:`vote`);
+   ≥ ``carve_min_views`` views and ≥ ``carve_fraction`` of those that see it see it as background, is re-projected
+   into every view as an upper bound, and GrabCut refines inside it to the image edges — a mistake in one view is
+   outvoted by the others; with a support plane, up to ``floor_rounds`` more rounds that change only the pixels
+   whose ray passes under the object (:func:`low_band`): the floor between an object's legs, in its shadow and seen
+   only by the views along the legs, leaves the masks a little more each round, and the rounds stop where they grow
+   instead (:func:`vote`);
 4. confidence = IoU between a view's first GrabCut mask and the hull's silhouette.
 """
 
@@ -260,17 +261,18 @@ def soften_beyond(lab: np.ndarray, cams: Cameras, i: int, footprint) -> np.ndarr
 
 
 @torch.no_grad()
-def visual_hull(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int) -> torch.Tensor:
+def visual_hull(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
+                min_fraction: float = 0.0) -> torch.Tensor:
     """:func:`dvr.hull.hull_logits` of ``masks`` (one bool array per view, each its own size; carving with
-    ``min_views``; nothing below the support plane)."""
+    ``min_views`` and ``min_fraction``; nothing below the support plane)."""
     canvas, sizes = pad_stack([m.astype(np.float32) for m in masks])
     return hull_logits(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res=res, min_views=min_views,
-                       slope_cells=1.0, ground=cams.ground, sizes=torch.from_numpy(sizes))
+                       min_fraction=min_fraction, slope_cells=1.0, ground=cams.ground, sizes=torch.from_numpy(sizes))
 
 
 @torch.no_grad()
 def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
-                     logits: torch.Tensor | None = None) -> list[np.ndarray]:
+                     logits: torch.Tensor | None = None, min_fraction: float = 0.0) -> list[np.ndarray]:
     """Render the visual hull of ``masks`` (:func:`visual_hull`; its ``logits`` when already built) into every
     view: one bool array per view.
 
@@ -281,7 +283,7 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     import trimesh
     from skimage import measure
 
-    lg = (visual_hull(masks, cams, res, min_views) if logits is None else logits).cpu().numpy()
+    lg = (visual_hull(masks, cams, res, min_views, min_fraction) if logits is None else logits).cpu().numpy()
     if lg.max() <= 0 or lg.min() > 0:
         return [np.full(m.shape, lg.min() > 0) for m in masks]
     v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
@@ -302,7 +304,7 @@ def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, log
     seen over it, is background too. None when no cell stands that high."""
     canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
     P = torch.from_numpy(cams.P)
-    lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views) if logits is None else logits
+    lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction) if logits is None else logits
     cells = grid_points(cfg.hull_res, dtype=torch.float64)[lg.reshape(-1).cpu() > 0]
     _, seen = mask_lookup(cells, P, canvas, sizes)  # in front of the camera and inside its own image
     # the hull is only carved where the views see
@@ -391,7 +393,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     first_hull = None  # built once when the footprint and the first vote both need it
     # the footprint of the first masks' hull: alone (too few points), or united with the points' prism
     if (used is False or unite) and cfg.footprint_hull_height > 0:
-        first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views)
+        first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction)
         from_hull = hull_footprint(first, cams, cfg, first_hull)
         if unite:
             footprint, used = united_footprint(footprint, from_hull), "sparse points and masks' hull"
@@ -459,7 +461,8 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
     kernel = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
     current, sil, changed = start, [], []
     for rnd in range(rounds):
-        sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views, first_hull if rnd == 0 else None)
+        sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views, first_hull if rnd == 0 else None,
+                               cfg.carve_fraction)
         labs = [vote_labels(seeds[i], sil[i], kernel) for i in range(len(imgs))]
         if sal is not None:  # a probable start inside the hull's bound, never past it
             labs = [vote_prior(lab, s) for lab, s in zip(labs, sal)]

@@ -75,6 +75,23 @@ def test_one_view_carves_where_fewer_than_sparse_views_see_the_point():
                                                                                           min_views=2).sum()
 
 
+def test_many_views_outvote_a_few_wrong_masks_with_min_fraction():
+    """``min_fraction``: 20 views see the centre and 3 of them call it background. Two views carve it by
+    ``min_views`` alone; with a fraction of 0.1 it takes 2 (20 × 0.1, no float rounding up to 3), with 0.2 four, so
+    the three wrong masks no longer carve it; never more than all the views that see a point; bad fractions refused."""
+    P = torch.stack([ring_camera(a) for a in np.linspace(0, 2 * np.pi, 20, endpoint=False)])
+    masks = torch.ones(20, 100, 100)
+    masks[:3] = 0.0
+    centre = torch.zeros(1, 3)
+    assert outside_hull(centre, P, masks, min_views=2).tolist() == [True]
+    assert outside_hull(centre, P, masks, min_views=2, min_fraction=0.1).tolist() == [True]
+    assert outside_hull(centre, P, masks, min_views=2, min_fraction=0.2).tolist() == [False]
+    assert outside_hull(centre, P, torch.zeros(20, 100, 100), min_views=2, min_fraction=1.0).tolist() == [True]
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="min_fraction must lie in"):
+            outside_hull(centre, P, masks, min_fraction=bad)
+
+
 def test_a_point_too_few_views_frame_is_free_with_min_framing():
     """``min_framing``: a point that one view frames, inside its mask (a close-up's corner of the working sphere),
     stays by default and is free with ``min_framing`` 2; the point both views frame stays with 2 and goes with 3;

@@ -195,6 +195,19 @@ def test_range_rules_are_declared_on_the_fields():
         setattr(section, leaf, before)
 
 
+def test_a_fraction_is_refused_outside_zero_to_one():
+    from pipeline.config import check_config
+
+    cfg = Config()
+    for good in (0.0, 0.5, 1.0):
+        cfg.masks.carve_fraction = good
+        check_config(cfg)
+    for bad in (1.5, -0.1, float("nan")):
+        cfg.masks.carve_fraction = bad
+        with pytest.raises(ValueError, match="--masks.carve-fraction = .*: must be a number from 0 to 1"):
+            check_config(cfg)
+
+
 def test_mesh_without_model(tmp_path, capsys):
     rc = main(["mesh", str(tmp_path)])
     assert rc == 2 and "final.pt" in capsys.readouterr().err

@@ -14,7 +14,17 @@ from dvr.metrics import pose_errors
 from pipeline.cameras.config import CamerasConfig
 from pipeline.cameras.export import left_out
 from pipeline.cameras.mapping import _judge
-from pipeline.cameras.sfm import LADDER, _extract, ladder, number_by_name, shortfalls
+from pipeline.cameras.sfm import (
+    GUIDED_COST,
+    LADDER,
+    UPSAMPLE_BELOW,
+    UPSAMPLE_COST,
+    _extract,
+    ladder,
+    number_by_name,
+    rung_seconds,
+    shortfalls,
+)
 from pipeline.cli import main
 from pipeline.colmaplib import pycolmap
 from synth import scene_from_dict, write_scene
@@ -63,6 +73,47 @@ def test_rungs_extract_fewer_features_for_many_photos():
     assert [r.max_features for r in ladder("default", "guided", 8192, n_photos=45)] == [5120, 11264]  # to 1 k
     assert [r.max_features for r in ladder("default", "guided", 8192, n_photos=200)] == [4096, 4096]  # floors
     assert ladder("default", "default", 2048, n_photos=200)[0].max_features == 2048  # never more than asked
+
+
+def test_large_photos_are_not_upsampled_for_sift():
+    assert all(r.upsample for r in ladder("default", "merge", sfm_side=UPSAMPLE_BELOW - 1))
+    assert not any(r.upsample for r in ladder("default", "merge", sfm_side=1600))
+    assert ladder("default", "default", sfm_side=1600)[0].features_key == "f8192-o0"
+
+
+def test_a_rungs_cost_is_estimated_from_the_last_one():
+    """The blowtorch's first rung (67 photos, 4096 features, not upsampled) took 60 s for features and 35 s for
+    matching: the guided rung's 7168 features take as long to find and (7168 / 4096)² × twice as long to match
+    guided; the relaxed rung shares the dsp rung's features and matches; merging reuses the model's."""
+    default, guided, dsp, relaxed, global_, merge = ladder("default", "merge", 8192, n_photos=67, sfm_side=1600)
+    steps = {"features": 60.0, "matching": 35.0, "mapping": 50.0}
+    assert rung_seconds(default, steps, guided) == 60.0 + 35.0 * (7168 / 4096) ** 2 * GUIDED_COST
+    assert rung_seconds(guided, steps, relaxed) > rung_seconds(guided, steps, guided) == 0.0
+    assert rung_seconds(dsp, steps, relaxed) == rung_seconds(dsp, steps, global_) == 0.0
+    assert rung_seconds(default, steps, merge) == 0.0
+    up = ladder("default", "default", 4096, n_photos=67)[0]  # small photos: upsampled
+    assert rung_seconds(default, steps, up) == 60.0 * UPSAMPLE_COST + 35.0  # and its new features matched
+
+
+def test_a_rung_that_would_not_finish_is_not_started(tmp_path, capsys, monkeypatch):
+    """The 12 photos 30° apart again, with the time budget as it is: the first rung poses a few; every later rung
+    estimated to take longer than the budget has left is not started (said, and in the stamp); merging, which makes
+    no features, runs; and, as no model is enough (``enough-registered`` above 1), the global mapper maps the first
+    rung's matches, those the merged model came from."""
+    import pipeline.cameras.mapping as mapping
+
+    monkeypatch.setattr(mapping, "rung_seconds", lambda done, steps, nxt: 0.0 if nxt.mapper == "extend" else 1e6)
+    images = _torus_photos(tmp_path, 12)
+    ws = tmp_path / "ws"
+    assert main(["cameras", str(ws), "--images", str(images), "--cameras.no-board",
+                 "--cameras.enough-registered", "1.01"]) == 0
+    out = capsys.readouterr().out
+    stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
+    skipped = [r["rung"] for r in stamp["rungs"] if "would take about 1000000 s" in r.get("skipped", "")]
+    assert skipped == ["guided", "dsp", "relaxed", "global"], stamp["rungs"]
+    assert [r["rung"] for r in stamp["rungs"] if "skipped" not in r] == ["default", "merge", "default-global"]
+    assert "cameras: rung guided not tried: its features and matches would take about 1000000 s" in out
+    assert stamp["registered"] == 12, stamp["rungs"]
 
 
 def test_the_time_budget_ends_the_climb(tmp_path, capsys):

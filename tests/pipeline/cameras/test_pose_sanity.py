@@ -84,6 +84,18 @@ def test_a_few_views_placed_far_off_do_not_move_the_object():
     assert sorted(aim_outliers(views)) == ["far0.png", "far1.png", "far2.png"]
 
 
+def test_a_view_far_off_that_sees_the_object_does_not_move_it():
+    """A view placed 500 orbit radii away whose axis passes the object 1.1° off (the blowtorch's global model, seed
+    1: one view at 547× the others' distance): it sees the object, but its axis passes 30 radii from its centre,
+    which pulls the axes' least-squares point out of most photos. It is flagged for its distance, the orbit's views
+    are not."""
+    views = _ring(16)
+    far = np.array([1500.0, 200.0, 100.0])
+    side = np.cross(far, [0, 0, 1.0])
+    views.append(_view("far.png", far, target=30.0 * side / np.linalg.norm(side)))
+    assert sorted(aim_outliers(views)) == ["far.png"]
+
+
 def test_a_scattered_model_fails_for_most_views():
     rng = np.random.default_rng(1)
     views = [_view(f"{i:02d}.png", rng.normal(size=3) * 3, target=rng.normal(size=3) * 2) for i in range(12)]

@@ -9,6 +9,8 @@ from pipeline.cameras.progress import LogProgress, heartbeat, minutes, wait_with
 LOG = """I20261128 17:16:46.863876 1 feature_extraction.cc:270] Processed file [1/16]
 I20261128 17:16:47.061204 1 feature_extraction.cc:270] Processed file [2/16]
 I20261128 17:16:51.234950 1 pairing.cc:214] Processing block [2/3, 3/3]
+Matching 589 pairs of similar photos (15 per photo)
+I20261129 03:55:23.529173 1 pairing.cc:938] Processing block [2/12]
 I20261128 17:16:56.337419 1 incremental_pipeline.cc:620] Registering image #26 (num_reg_frames=12)
 I20261128 17:16:56.337468 1 incremental_pipeline.cc:623] => Image sees 115 / 533 points
 I20261128 17:16:57.000000 1 global_mapper.cc:80] Running rotation averaging...
@@ -29,8 +31,9 @@ def test_log_progress_follows_the_log_as_it_grows(tmp_path):
         steps.append(watch.update())
     assert steps[1] == "features of 1/16 photos" and steps[3] == "features of 2/16 photos"
     assert steps[5] == "matching, block 6/9"  # block (2, 3) of 3 × 3
-    assert steps[7] == steps[9] == "mapping, 12 photos registered"  # a line of no step keeps the last one
-    assert steps[11] == "mapping: rotation averaging"
+    assert steps[7] == "matching 589 pairs of similar photos" and steps[9] == "matching, block 2/12"
+    assert steps[11] == steps[13] == "mapping, 12 photos registered"  # a line of no step keeps the last one
+    assert steps[15] == "mapping: rotation averaging"
     assert minutes(42.4) == "42 s" and minutes(185) == "3 min 05 s"
 
 
