@@ -111,8 +111,8 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
             n_out, n_seen = view_votes(p, P, masks, sizes)
         else:  # the masks and their sure-background maps read at one projection
             (n_out, n_far), n_seen = view_votes(p, P, torch.stack([masks, near], dim=1), sizes)
-        need = torch.maximum(torch.full_like(n_seen, min_views), torch.ceil(min_fraction * n_seen - 1e-6).long())
-        need = torch.clamp(torch.minimum(need, n_seen), min=1)
+        need = torch.ceil(min_fraction * n_seen - 1e-6).long().clamp(min=min_views)  # 1e-6: 0.1 × 30 is 3, not 4
+        need = torch.minimum(need, n_seen).clamp(min=1)
         need = torch.where(n_seen < sparse_views, torch.ones_like(need), need)
         if ground is not None:
             hgt = plane_height(ground, p)

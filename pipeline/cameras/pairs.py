@@ -10,7 +10,6 @@ pairs that verify and 99.7 % of their verified matches, in 605 pairs instead of 
 
 from __future__ import annotations
 
-import sqlite3
 from pathlib import Path
 
 import numpy as np
@@ -25,24 +24,24 @@ RATIO = 0.8
 def read_features(database: Path, n_features: int = COARSE_FEATURES) -> tuple[list[str], list[torch.Tensor]]:
     """The image names of a COLMAP ``database`` (in id order) and each image's ``n_features`` largest-scale SIFT
     descriptors, unit length (k, 128) float32."""
-    con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
+    from pipeline.colmaplib import pycolmap
+
+    db = pycolmap.Database.open(str(database))
     try:
         names, descriptors = [], []
-        for image_id, name in con.execute("SELECT image_id, name FROM images ORDER BY image_id"):
-            kp = con.execute("SELECT rows, cols, data FROM keypoints WHERE image_id = ?", (image_id,)).fetchone()
-            ds = con.execute("SELECT rows, cols, data FROM descriptors WHERE image_id = ?", (image_id,)).fetchone()
-            names.append(name)
-            if kp is None or ds is None or not kp[0] or not ds[0]:
+        for image in sorted(db.read_all_images(), key=lambda im: im.image_id):
+            shape = db.read_keypoints(image.image_id)  # (k, 6): x, y and the affine frame a11, a12, a21, a22
+            d = np.asarray(db.read_descriptors(image.image_id).data, np.float32)
+            names.append(image.name)
+            if not len(shape) or not len(d):
                 descriptors.append(torch.zeros(0, 128))
                 continue
-            shape = np.frombuffer(kp[2], np.float32).reshape(kp[0], kp[1])
             scale = np.sqrt(np.abs(shape[:, 2] * shape[:, 5] - shape[:, 3] * shape[:, 4]))  # affine frame's det
-            top = np.argsort(-scale, kind="stable")[:n_features]
-            d = np.frombuffer(ds[2], np.uint8).reshape(ds[0], ds[1])[top].astype(np.float32)
+            d = d[np.argsort(-scale, kind="stable")[:n_features]]
             d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
             descriptors.append(torch.from_numpy(d))
     finally:
-        con.close()
+        db.close()
     return names, descriptors
 
 

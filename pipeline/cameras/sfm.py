@@ -101,7 +101,7 @@ SIMILAR_PAIRS_ABOVE = 40
 
 
 def ladder(start: str, stop: str, max_features: int = 8192, max_h_inlier_ratio: float = 0.8,
-           n_photos: int = 0, sfm_side: int = 0, pair_neighbours: int = 15,
+           n_photos: int = 0, sfm_side: int = 0, pair_neighbours: int = Rung.pair_neighbours,
            upsample_below: int = UPSAMPLE_BELOW) -> list[Rung]:
     """The rungs from ``start`` to ``stop`` (names of :data:`RUNG_NAMES`), in order; the first rung extracts
     ``max_features`` features, the others at least twice that and 16 k; for ``n_photos`` more than
