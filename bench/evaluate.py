@@ -42,6 +42,7 @@ SCENES = {
     "torus_board": ROOT / "configs" / "scenes" / "torus_board.yaml",
     "sphere_board": ROOT / "configs" / "scenes" / "sphere_checker_board.yaml",
     "e2e": ROOT / "configs" / "scenes" / "e2e_floor.yaml",  # the small torus on a floor (bench/batch.py)
+    "white_table": ROOT / "configs" / "scenes" / "white_table.yaml",  # a puck on a white table: no SfM points on it
 }
 HELDOUT = "heldout_"
 """Prefix of the held-out photos in a photos-only run's folder (sorted after the training photos)."""

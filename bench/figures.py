@@ -24,6 +24,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 ORBITS = ("0deg 75deg auto", "90deg 75deg auto", "180deg 75deg auto", "270deg 75deg auto", "0deg 5deg auto")
+BELOW = ("0deg 95deg auto", "90deg 100deg auto", "180deg 100deg auto", "270deg 100deg auto", "45deg 120deg auto")
+"""``glb --below``: four sides from just below the base's rim and once from further below (what stands on a table
+should end flat there)."""
 SIDE = 300
 
 
@@ -45,11 +48,11 @@ def picture(ws: Path, out: Path) -> None:
     print(f"picture: {out}")
 
 
-def glb_views(glb: Path, out: Path) -> None:
-    """The GLB as a glTF viewer opens it (Google's model-viewer, the report's, in headless Chromium), from four sides
-    around its up axis and once from above, as one PNG: what a user sees on opening ``mesh/textured.glb``. Needs
-    ``make setup-web`` (model-viewer) and Chromium; the screenshot waits until every viewer shows its model
-    (``bench/glb_shot.mjs``)."""
+def glb_views(glb: Path, out: Path, orbits: tuple[str, ...] = ORBITS) -> None:
+    """The GLB as a glTF viewer opens it (Google's model-viewer, the report's, in headless Chromium), from each of
+    the camera ``orbits`` (by default four sides around its up axis and once from above), as one PNG: what a user
+    sees on opening ``mesh/textured.glb``. Needs ``make setup-web`` (model-viewer) and Chromium; the screenshot waits
+    until every viewer shows its model (``bench/glb_shot.mjs``)."""
     from pipeline.report.stage import VIEWER_JS, inlined_viewer
 
     if not VIEWER_JS.exists():
@@ -57,13 +60,13 @@ def glb_views(glb: Path, out: Path) -> None:
     js, src = inlined_viewer(glb)
     style = f"width:{SIDE}px;height:{SIDE}px;background:#eee;flex:none"
     views = "".join(f'<model-viewer loading="eager" src="{src}" camera-orbit="{o}" style="{style}"></model-viewer>'
-                    for o in ORBITS)
+                    for o in orbits)
     with tempfile.TemporaryDirectory() as tmp:
         page = Path(tmp) / "views.html"
         page.write_text('<html><body style="margin:0;display:flex;overflow:hidden">'
                         f'<script type="module">{js}</script>{views}</body></html>')
         done = subprocess.run(["node", "--experimental-websocket", str(ROOT / "bench" / "glb_shot.mjs"), str(page),
-                               str(out), str(SIDE * len(ORBITS)), str(SIDE)])
+                               str(out), str(SIDE * len(orbits)), str(SIDE)])
     if done.returncode:
         sys.exit(f"{glb}: no screenshot (above)")
     print(f"glb views: {out}")
@@ -114,6 +117,7 @@ def main(argv: list[str] | None = None) -> None:
     g = sub.add_parser("glb", help="the GLB in a glTF viewer (model-viewer, headless Chromium), five sides, one PNG")
     g.add_argument("glb", type=Path, help="a textured GLB (mesh/textured.glb)")
     g.add_argument("out", type=Path, help="the PNG to write")
+    g.add_argument("--below", action="store_true", help="from below the base's rim instead (bench/figures.py BELOW)")
     r = sub.add_parser("reaim", help="photo | mesh at SfM's pose | re-aimed | their errors, one held-out view")
     r.add_argument("arm", type=Path, help="a bench/arms.py pair arm's work folder (bench/runs/pairs/<scene>/work/<k>)")
     r.add_argument("scene")
@@ -123,7 +127,7 @@ def main(argv: list[str] | None = None) -> None:
     if a.command == "photos":
         picture(a.ws, a.out)
     elif a.command == "glb":
-        glb_views(a.glb, a.out)
+        glb_views(a.glb, a.out, BELOW if a.below else ORBITS)
     else:
         reaim_picture(a.arm, a.scene, a.view, a.out)
 

@@ -265,7 +265,7 @@ def board_support(pts: np.ndarray, centers: np.ndarray, target: np.ndarray, tole
     tol = tolerance * scale
     up = np.array([0.0, 0, 1])
     height = object_height(object_points(pts, up, 0.0, target, scale, tol), up, 0.0, target)
-    return SupportPlane(up, 0.0, int((np.abs(pts[:, 2]) < tol).sum()), tol, height)
+    return SupportPlane(up, 0.0, int((np.abs(pts[:, 2]) < tol).sum()), tol, height, kind="board")
 
 
 def _read_views(folder: Path, files: list[str], Ks: np.ndarray, sizes: np.ndarray):

@@ -16,6 +16,8 @@ class CamerasConfig:
     """Longest image side (px) SfM works at; larger photos are downscaled to it, never upscaled."""
     sift_upsample_below: PositiveInt = 1000
     """SIFT finds features on the photos upsampled twice when SfM sees them smaller than this (px): 3× the time."""
+    sift_upsample_features: int = 1500
+    """Larger photos are upsampled too when SIFT finds fewer features than this in the median photo (0: never)."""
     max_side: PositiveInt = 400
     """Longest side (px) of the training images written to images/."""
     video_frames: PositiveInt = 48
@@ -79,6 +81,8 @@ class CamerasConfig:
     support: bool = True
     """Find the floor or table the object stands on (no floor: the wall it hangs on); later stages treat it and all
     behind it as background."""
+    plain_support: bool = True
+    """No support in the SfM points: look in the photos for a plain one (a white table) under the object's base."""
     board: bool = True
     """Look for a printed ChArUco board; when seen, cameras and meshes are in metres and it is the floor."""
     board_squares: tuple[int, int] = (5, 7)

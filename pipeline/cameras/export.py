@@ -30,6 +30,7 @@ from pipeline.cameras.pose_sanity import axes_convergence
 from pipeline.colmaplib import warnings_only
 from pipeline.errors import StageError
 from pipeline.messages import names_or_count
+from pipeline.scene.plain_support import find_plain_support
 from pipeline.scene.support import SupportPlane, find_support
 from pipeline.workspace import Workspace
 
@@ -156,7 +157,7 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
     if ws.images.exists():
         shutil.rmtree(ws.images)
     ws.images.mkdir(parents=True)
-    Ks, Rs, ts, sizes, kept = [], [], [], [], []
+    Ks, Rs, ts, sizes, kept, views = [], [], [], [], [], []
     for name in names:
         if name not in by_name:
             continue
@@ -171,6 +172,7 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
         if s < 1.0:
             img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
         write_image(ws.images / f"{name}.png", img)
+        views.append(img)
         K = cam.calibration_matrix().copy()
         K[0] *= nw / w  # corner-origin pixel coordinates scale exactly
         K[1] *= nh / h
@@ -186,6 +188,8 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
     target = axes_convergence(centers, Rs[:, 2, :])
     support = board_support(pts, centers, target) if fit is not None and cfg.support else None  # the board's plane
     support = support or (find_support(pts, centers, Rs, target) if cfg.support else None)
+    if support is None and cfg.support and cfg.plain_support and fit is None:
+        support = find_plain_support(pts, centers, Rs, Ps, target, [v.astype(np.float32) for v in views])
     if scale_mat is None:
         S = normalization(pts, Ps, sizes, centers, Rs[:, 2, :], cfg.radius_margin, focals=Ks[:, 0, 0],
                           support=support)
@@ -208,7 +212,10 @@ def support_info(support: SupportPlane | None, S: np.ndarray) -> dict | None:
     info = {"normal": np.round(support.normal, 4).tolist(), "offset": round(float(support.offset), 6),
             "inliers": support.inliers, "object_height": round(support.object_height / S[0, 0], 4),
             "sphere_centre_height": round(centre_h, 4)}
-    print(f"cameras: support plane found: {support.inliers} points on it, the object stands "
+    info["kind"] = support.kind
+    where = (f"{support.inliers} points on it" if support.kind != "base" else
+             "a plain surface under the object's base, where the photos agree around it")
+    print(f"cameras: support plane found: {where}, the object stands "
           f"{info['object_height']:.2f} high on it (unit sphere radii; the sphere centre {centre_h:.2f} above it)")
     return info
 

@@ -25,6 +25,7 @@ from pipeline.cameras.sfm import (
     RUNG_NAMES,
     Rung,
     ladder,
+    median_features,
     model_stats,
     refine_model,
     retriangulate,
@@ -145,6 +146,7 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     tried, best, rejected, measured, made_by = [], None, {}, None, {}
     rungs = ladder(cfg.start_rung, cfg.last_rung, cfg.max_features, cfg.max_h_inlier_ratio, len(names), sfm_side,
                    cfg.pair_neighbours, cfg.sift_upsample_below)
+    rungs = _upsampled_when_weak(rungs, work, inp, names, cfg)
     for step, rung in enumerate(rungs):
         base = None
         if rung.mapper == "extend":  # continue from the best model so far: only when it lacks photos
@@ -187,6 +189,22 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
             best = _better(best, *again)
     _require_credible(None if best is None else best.model, rejected, inp, len(names), cfg.min_registered_fraction)
     return best.model, inp, best.database, best.rung.name, tried
+
+
+def _upsampled_when_weak(rungs: list[Rung], work: Path, inp: Path, names: list[str], cfg: CamerasConfig
+                         ) -> list[Rung]:
+    """The ladder's rungs, upsampling the photos for SIFT when they do not already and SIFT finds fewer than
+    ``cfg.sift_upsample_features`` features in the median photo at their size (:func:`median_features`): weakly
+    textured photos — a white mouse on a white table — give 3 × the points upsampled, and the masks and the depth
+    loss are built on them."""
+    if rungs[0].upsample or cfg.sift_upsample_features <= 0:
+        return rungs
+    found = median_features(work, inp, names, rungs[0], sfm_threads(cfg))
+    if found >= cfg.sift_upsample_features:
+        return rungs
+    print(f"cameras: SIFT finds {found:.0f} features in the median photo at the size SfM sees them (fewer than "
+          f"cameras.sift-upsample-features {cfg.sift_upsample_features}): the photos are upsampled for SIFT")
+    return [replace(r, upsample=True) for r in rungs]
 
 
 def _judge(rec, name: str, seconds: float, steps: dict, err: str | None, inp: Path, names: list[str],

@@ -178,6 +178,27 @@ def _extract(db: Path, images: Path, groups: list[list[str]], rung: Rung, camera
     number_by_name(db)
 
 
+PROBE_PHOTOS = 8
+""":func:`median_features` extracts the features of this many of the photos."""
+
+
+def median_features(work: Path, images: Path, names: list[str], rung: Rung, threads: int = -1) -> float:
+    """SIFT's feature count in the median photo with ``rung``'s settings, from up to :data:`PROBE_PHOTOS` of the
+    photos ``names`` (evenly spaced in their order) in ``images``: how much texture SIFT finds at that size. A
+    white mouse on a white table gives 675 at 1600 px, a brass blowtorch on a carpet 5289."""
+    sample = names[:: max(1, len(names) // PROBE_PHOTOS)][:PROBE_PHOTOS]
+    db = work / "probe.db"
+    db.unlink(missing_ok=True)
+    _extract(db, images, [[f"{n}.png" for n in sample]], rung, "SIMPLE_RADIAL", per_image=True, threads=threads)
+    con = sqlite3.connect(db)
+    try:
+        counts = [row[0] for row in con.execute("SELECT rows FROM keypoints")]
+    finally:
+        con.close()
+    db.unlink()
+    return float(np.median(counts)) if counts else 0.0
+
+
 def number_by_name(db: Path) -> None:
     """Give the database's images (and their frames) ids in the order of their names. COLMAP numbers photos as
     its extraction threads finish them, so on several threads the ids, and with them the mapper's choices, would

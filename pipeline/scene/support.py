@@ -54,6 +54,9 @@ class SupportPlane:
     tolerance: float
     object_height: float
     """Height above the plane of the highest object point (SfM units)."""
+    kind: str = "points"
+    """How it was found: "points" (SfM points on it), "board" (a printed board on it), "base" (a plain surface under
+    the object's base, :mod:`pipeline.scene.plain_support`)."""
 
     @property
     def vector(self) -> np.ndarray:

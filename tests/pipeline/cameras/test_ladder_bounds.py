@@ -3,6 +3,7 @@ named, with why), later rungs extract fewer features for many photos, and its ti
 
 import json
 import sqlite3
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -13,7 +14,7 @@ from dvr.data import list_images
 from dvr.metrics import pose_errors
 from pipeline.cameras.config import CamerasConfig
 from pipeline.cameras.export import left_out
-from pipeline.cameras.mapping import _judge
+from pipeline.cameras.mapping import _judge, _upsampled_when_weak
 from pipeline.cameras.sfm import (
     GUIDED_COST,
     LADDER,
@@ -21,6 +22,7 @@ from pipeline.cameras.sfm import (
     UPSAMPLE_COST,
     _extract,
     ladder,
+    median_features,
     number_by_name,
     rung_seconds,
     shortfalls,
@@ -79,6 +81,34 @@ def test_large_photos_are_not_upsampled_for_sift():
     assert all(r.upsample for r in ladder("default", "merge", sfm_side=UPSAMPLE_BELOW - 1))
     assert not any(r.upsample for r in ladder("default", "merge", sfm_side=1600))
     assert ladder("default", "default", sfm_side=1600)[0].features_key == "f8192-o0"
+
+
+def _blob_photos(folder, n: int, blobs: int):
+    """``n`` grey 400×300 photos with ``blobs`` soft dark spots each, as PNGs named like the SfM input's."""
+    rng = np.random.default_rng(0)
+    folder.mkdir()
+    for i in range(n):
+        img = np.full((300, 400), 200, np.uint8)
+        for x, y in rng.integers((10, 10), (390, 290), (blobs, 2)):
+            cv2.circle(img, (int(x), int(y)), int(rng.integers(2, 6)), int(rng.integers(40, 150)), -1)
+        cv2.imwrite(str(folder / f"p{i:02d}.png"), cv2.GaussianBlur(img, (3, 3), 0))
+    return [f"p{i:02d}" for i in range(n)]
+
+
+def test_weakly_textured_photos_are_upsampled_for_sift(tmp_path, capsys):
+    """SIFT finds few features in plain photos at their size: the ladder then upsamples them; photos with texture
+    enough keep their size, and so does every rung when the probe is off."""
+    rungs = ladder("default", "merge", sfm_side=1600)
+    plain, busy = tmp_path / "plain", tmp_path / "busy"
+    names_plain, names_busy = _blob_photos(plain, 10, 15), _blob_photos(busy, 10, 600)
+    cfg = CamerasConfig(sift_upsample_features=100)
+    assert median_features(tmp_path, plain, names_plain, rungs[0], 1) < 100 < median_features(
+        tmp_path, busy, names_busy, rungs[0], 1)
+    assert not (tmp_path / "probe.db").exists()
+    assert all(r.upsample for r in _upsampled_when_weak(rungs, tmp_path, plain, names_plain, cfg))
+    assert "upsampled for SIFT" in capsys.readouterr().out
+    assert _upsampled_when_weak(rungs, tmp_path, busy, names_busy, cfg) == rungs
+    assert _upsampled_when_weak(rungs, tmp_path, plain, names_plain, replace(cfg, sift_upsample_features=0)) == rungs
 
 
 def test_a_rungs_cost_is_estimated_from_the_last_one():
