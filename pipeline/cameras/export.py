@@ -172,7 +172,9 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
         if s < 1.0:
             img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
         write_image(ws.images / f"{name}.png", img)
-        views.append(img)
+        views.append(img if max(nh, nw) <= SWEEP_SIDE else
+                     cv2.resize(img, (round(nw * SWEEP_SIDE / max(nh, nw)), round(nh * SWEEP_SIDE / max(nh, nw))),
+                                interpolation=cv2.INTER_AREA))
         K = cam.calibration_matrix().copy()
         K[0] *= nw / w  # corner-origin pixel coordinates scale exactly
         K[1] *= nh / h
@@ -189,7 +191,9 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
     support = board_support(pts, centers, target) if fit is not None and cfg.support else None  # the board's plane
     support = support or (find_support(pts, centers, Rs, target) if cfg.support else None)
     if support is None and cfg.support and cfg.plain_support and fit is None:
-        support = find_plain_support(pts, centers, Rs, Ps, target, [v.astype(np.float32) for v in views])
+        shrink = np.array([v.shape[1] / w for v, (w, _) in zip(views, sizes)])  # corner-origin pixels scale exactly
+        support = find_plain_support(pts, centers, Rs, Ps * np.stack([shrink, shrink, np.ones_like(shrink)], 1)[
+            :, :, None], target, views)
     if scale_mat is None:
         S = normalization(pts, Ps, sizes, centers, Rs[:, 2, :], cfg.radius_margin, focals=Ks[:, 0, 0],
                           support=support)
@@ -201,6 +205,10 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
     write_points(ws.root / "points.ply", pts, cols)
     return {"views": kept, "radius": float(S[0, 0]), "center": S[:3, 3].tolist(), "support": support_info(support, S),
             **({"board": fit.info(len(names))} if fit is not None else {})}
+
+
+SWEEP_SIDE = 400
+"""The plain support's plane sweep reads the photos at most this large (px, longest side)."""
 
 
 def support_info(support: SupportPlane | None, S: np.ndarray) -> dict | None:

@@ -90,7 +90,8 @@ def disagreement(images: list[np.ndarray], P: np.ndarray, centers: np.ndarray, r
     """How much the photos disagree on the colours of the ``ring``'s points (M, 3): per point the median absolute
     deviation of its colour (each photo's divided by its ``gains``) over the photos that see it from the near side
     of the object (the object hides the far side) inside their frame, the mean over points seen by three or more;
-    and the colours (N, M, 3), NaN where unseen. ``images``: float RGB; ``P``: (N, 3, 4) projections."""
+    and the colours (N, M, 3), NaN where unseen. ``images``: RGB or BGR, uint8 or float; ``P``: (N, 3, 4)
+    projections."""
     colours = np.full((len(images), len(ring), 3), np.nan, np.float32)
     outward = ring - foot
     outward -= np.outer(outward @ n, n)
@@ -105,7 +106,7 @@ def disagreement(images: list[np.ndarray], P: np.ndarray, centers: np.ndarray, r
         if not seen.any():
             continue
         px = cv2.remap(img, uv[seen, :1].astype(np.float32), uv[seen, 1:].astype(np.float32), cv2.INTER_LINEAR)
-        colours[i, seen] = px.reshape(-1, 3) / (1.0 if gains is None else gains[i])
+        colours[i, seen] = px.reshape(-1, 3).astype(np.float32) / (1.0 if gains is None else gains[i])
     seen_by = np.sum(~np.isnan(colours[..., 0]), axis=0)
     ok = seen_by >= 3
     if not ok.any():
@@ -148,7 +149,8 @@ def find_plain_support(points: np.ndarray, centers: np.ndarray, R: np.ndarray, P
 
     Args:
         points: sparse SfM points (M, 3); centers: camera centres (N, 3); R: world→camera rotations (N, 3, 3);
-        P: projections (N, 3, 4) into ``images`` (float RGB, N); target: the point the cameras converge on.
+        P: projections (N, 3, 4) into ``images`` (N, colour, any scale: the disagreement is relative to the
+        photos' own level); target: the point the cameras converge on.
         tolerance: as :func:`pipeline.scene.support.find_support`'s, a fraction of the median camera distance.
     """
     scale = float(np.median(np.linalg.norm(centers - target, axis=1)))
