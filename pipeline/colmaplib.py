@@ -5,13 +5,18 @@ before any module of the package: pycolmap loaded before OpenCV makes OpenCV's P
 logger (glog) writes no log files: by default it leaves a set of them for every process in the system's temporary
 folder (``/tmp/<host>.<user>.log.INFO.<date>.<pid>`` and one per warning level), outside the workspace and never
 removed. Its info lines are kept off the terminal (:func:`warnings_only`; warnings and errors still reach it), but
-pycolmap's bundle adjustment turns them back on at every call, so the code that runs one in this process calls
-:func:`warnings_only` again before COLMAP's next chatty step (the undistortion's two lines per photo). The SfM
+pycolmap's bundle adjustment turns them back on at every call and logs its own header whatever they are, so the
+code that runs one in this process runs it inside :func:`quiet` and calls :func:`warnings_only` again before
+COLMAP's next chatty step (the undistortion's two lines per photo). The SfM
 rungs' child processes put the info lines back (:func:`info_to_stderr`): their output is the rung's log in the
 workspace.
 """
 
 from __future__ import annotations
+
+import contextlib
+import os
+import sys
 
 import pycolmap  # after OpenCV: this module's package, pipeline/__init__, loaded it
 
@@ -23,6 +28,22 @@ def warnings_only() -> None:
     """COLMAP's warnings and errors to stderr, its info lines nowhere."""
     pycolmap.logging.alsologtostderr = False
     pycolmap.logging.stderrthreshold = int(pycolmap.logging.WARNING)
+
+
+@contextlib.contextmanager
+def quiet():
+    """COLMAP's lines off this process' stderr while the block runs: pycolmap's bundle adjustment logs its header and
+    timing at info level whatever the logger's settings (it sets them itself). The file descriptor is redirected,
+    so Python's exceptions still reach the user after the block."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def info_to_stderr() -> None:

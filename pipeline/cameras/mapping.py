@@ -395,7 +395,7 @@ def prefer_pinhole(rec, tolerance: float, threads: int = -1):
     length to 0.01 % at the same reprojection error; undistorting by the spurious model cost ~13 dB held-out
     PSNR. A real lens keeps its distortion because a pinhole explains its tracks clearly worse.
     """
-    from pipeline.colmaplib import pycolmap
+    from pipeline.colmaplib import pycolmap, quiet
 
     if tolerance < 0:
         return rec, []
@@ -416,7 +416,8 @@ def prefer_pinhole(rec, tolerance: float, threads: int = -1):
     opts.refine_extra_params = False
     opts.print_summary = False
     opts.ceres.solver_options.num_threads = threads
-    pycolmap.bundle_adjustment(trial, opts)
+    with quiet():
+        pycolmap.bundle_adjustment(trial, opts)
     e0, e1 = rec.compute_mean_reprojection_error(), trial.compute_mean_reprojection_error()
     if e1 > (1 + tolerance) * e0 + 0.01:
         return rec, [f"lens distortion kept: as a pinhole the reprojection error grows from {e0:.3f} to {e1:.3f} px"]

@@ -422,7 +422,7 @@ def refine_model(rec, passes: int, error_ratio: float, min_points_per_view: int 
     the rotation error at 0.059°, and this halves it (0.030°; the held-out photos' silhouettes then line up with the
     mesh). Returns (model, notes); the model as given, with a note, when a view would keep fewer than
     ``min_points_per_view`` points or the adjustment diverges."""
-    from pipeline.colmaplib import pycolmap
+    from pipeline.colmaplib import pycolmap, quiet
 
     if passes <= 0:
         return rec, []
@@ -436,7 +436,8 @@ def refine_model(rec, passes: int, error_ratio: float, min_points_per_view: int 
     for _ in range(passes):
         pycolmap.ObservationManager(out).filter_all_points3D(error_ratio * out.compute_mean_reprojection_error(),
                                                              1.5)
-        pycolmap.bundle_adjustment(out, opts)
+        with quiet():
+            pycolmap.bundle_adjustment(out, opts)
     poses = [np.asarray(out.image(i).cam_from_world().matrix()) for i in out.reg_image_ids()]
     if not (np.isfinite(poses).all() and np.isfinite(out.compute_mean_reprojection_error())):
         return rec, ["final adjustment diverged; the mapped model is kept"]

@@ -49,6 +49,22 @@ def test_colmap_writes_no_log_files_and_keeps_info_lines_off_the_terminal(tmp_pa
     assert list(temp.iterdir()) == []
 
 
+def test_a_quiet_bundle_adjustment_prints_nothing_and_stderr_comes_back():
+    """pycolmap's bundle adjustment logs its header at info level whatever the logger's settings: inside ``quiet``
+    none of its lines reach stderr, and stderr works again after the block, also when the block raised."""
+    code = ("import os\nfrom pipeline.colmaplib import pycolmap, quiet\n"
+            "ba = lambda: pycolmap.bundle_adjustment(pycolmap.Reconstruction(), pycolmap.BundleAdjustmentOptions())\n"
+            "with quiet():\n    ba()\nos.write(2, b'after-quiet\\n')\n"
+            "try:\n    with quiet():\n        raise KeyError('inside')\n"
+            "except KeyError:\n    os.write(2, b'after-raise\\n')\n"
+            "ba()\n")
+    run = _python(code)
+    assert run.returncode == 0, run.stderr[-500:]
+    before, _, after = run.stderr.partition("after-quiet")
+    assert "bundle_adjustment" not in before and "after-raise" in after
+    assert "Global bundle adjustment" in after  # outside the block: what the block kept off
+
+
 def test_a_model_cut_short_by_a_full_disk_is_said(tmp_path, monkeypatch):
     """COLMAP's model writer leaves its files cut short when the disk fills, and says nothing (reading them back is
     no check: a count read from the cut has its reader allocate gigabytes): a model written where no space is left
