@@ -29,6 +29,7 @@ from pipeline.cameras.config import CamerasConfig
 from pipeline.cameras.pose_sanity import axes_convergence
 from pipeline.colmaplib import warnings_only
 from pipeline.errors import StageError
+from pipeline.inputs.photos import downscale
 from pipeline.messages import names_or_count
 from pipeline.scene.plain_support import find_plain_support
 from pipeline.scene.support import SupportPlane, find_support
@@ -172,9 +173,7 @@ def export_model(ws: Workspace, rec, image_dir: Path, cfg: CamerasConfig, names:
         if s < 1.0:
             img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA)
         write_image(ws.images / f"{name}.png", img)
-        views.append(img if max(nh, nw) <= SWEEP_SIDE else
-                     cv2.resize(img, (round(nw * SWEEP_SIDE / max(nh, nw)), round(nh * SWEEP_SIDE / max(nh, nw))),
-                                interpolation=cv2.INTER_AREA))
+        views.append(downscale(img, SWEEP_SIDE))
         K = cam.calibration_matrix().copy()
         K[0] *= nw / w  # corner-origin pixel coordinates scale exactly
         K[1] *= nh / h

@@ -85,13 +85,11 @@ def ring_points(obj: np.ndarray, n: np.ndarray, d: float, foot: np.ndarray) -> n
     return foot + flat.reshape(-1, 2) @ np.stack([e1, e2])
 
 
-def disagreement(images: list[np.ndarray], P: np.ndarray, centers: np.ndarray, ring: np.ndarray, n: np.ndarray,
-                 foot: np.ndarray, gains: np.ndarray | None = None) -> tuple[float, np.ndarray]:
-    """How much the photos disagree on the colours of the ``ring``'s points (M, 3): per point the median absolute
-    deviation of its colour (each photo's divided by its ``gains``) over the photos that see it from the near side
-    of the object (the object hides the far side) inside their frame, the mean over points seen by three or more;
-    and the colours (N, M, 3), NaN where unseen. ``images``: RGB or BGR, uint8 or float; ``P``: (N, 3, 4)
-    projections."""
+def ring_colours(images: list[np.ndarray], P: np.ndarray, centers: np.ndarray, ring: np.ndarray, n: np.ndarray,
+                 foot: np.ndarray) -> np.ndarray:
+    """The colours (N, M, 3) of the ``ring``'s points (M, 3) in the photos that see them from the near side of the
+    object (the object hides the far side) inside their frame, NaN where unseen. ``images``: RGB or BGR, uint8 or
+    float; ``P``: (N, 3, 4) projections."""
     colours = np.full((len(images), len(ring), 3), np.nan, np.float32)
     outward = ring - foot
     outward -= np.outer(outward @ n, n)
@@ -106,34 +104,35 @@ def disagreement(images: list[np.ndarray], P: np.ndarray, centers: np.ndarray, r
         if not seen.any():
             continue
         px = cv2.remap(img, uv[seen, :1].astype(np.float32), uv[seen, 1:].astype(np.float32), cv2.INTER_LINEAR)
-        colours[i, seen] = px.reshape(-1, 3).astype(np.float32) / (1.0 if gains is None else gains[i])
-    seen_by = np.sum(~np.isnan(colours[..., 0]), axis=0)
-    ok = seen_by >= 3
+        colours[i, seen] = px.reshape(-1, 3)
+    return colours
+
+
+def disagreement(colours: np.ndarray) -> float:
+    """How much the photos disagree on the ring's colours (N, M, 3; :func:`ring_colours`): per point the median
+    absolute deviation of its colour over the photos that see it, the mean over points seen by three or more (NaN
+    when none is)."""
+    ok = np.sum(~np.isnan(colours[..., 0]), axis=0) >= 3
     if not ok.any():
-        return float("nan"), colours
+        return float("nan")
     c = colours[:, ok]
-    mad = np.nanmedian(np.abs(c - np.nanmedian(c, axis=0)), axis=0)
-    return float(np.mean(mad)), colours
+    return float(np.mean(np.nanmedian(np.abs(c - np.nanmedian(c, axis=0)), axis=0)))
 
 
 def sweep_height(images: list[np.ndarray], P: np.ndarray, centers: np.ndarray, obj: np.ndarray, n: np.ndarray,
                  d: float, target: np.ndarray, tol: float, depth: float, max_dip: float = 0.85
                  ) -> tuple[float | None, np.ndarray]:
     """The offset of the plane parallel to n·x + d = 0, at most ``depth`` below it, on which the photos agree about
-    the ring around the object (:func:`disagreement`), or None without a clear dip; and the disagreement at each
-    height swept (steps of ``tol`` / 2, from the plane down)."""
+    the ring around the object (:func:`disagreement`, each photo's colours divided by its exposure), or None without a
+    clear dip; and the disagreement at each height swept (steps of ``tol`` / 2, from the plane down)."""
     steps = np.arange(0.0, depth + 1e-12, tol / 2)
     foot = target - float(target @ n + d) * n
     base = ring_points(obj, n, d, foot)
-    scores, colours = [], []
-    for s in steps:
-        score, col = disagreement(images, P, centers, base - s * n, n, foot - s * n)
-        scores.append(score), colours.append(col)
+    colours = [ring_colours(images, P, centers, base - s * n, n, foot - s * n) for s in steps]
     # each photo's exposure from what it saw of the ring at every height: the same surface in every photo
-    seen = np.concatenate(colours, axis=1)
-    gains = np.nanmedian(seen.reshape(len(images), -1), axis=1)
+    gains = np.nanmedian(np.concatenate(colours, axis=1).reshape(len(images), -1), axis=1)
     gains = np.where(np.isfinite(gains) & (gains > 0), gains, 1.0) / max(float(np.nanmedian(gains)), 1e-6)
-    scores = np.array([disagreement(images, P, centers, base - s * n, n, foot - s * n, gains)[0] for s in steps])
+    scores = np.array([disagreement((c / gains[:, None, None]).astype(np.float32)) for c in colours])
     if len(steps) < 5 or not np.isfinite(scores).all():
         return None, scores
     k = int(np.argmin(scores))

@@ -4,7 +4,13 @@ from the base's rim and a plane sweep of the photos; never under an object float
 import numpy as np
 import pytest
 
-from pipeline.scene.plain_support import base_direction, disagreement, find_plain_support, ring_points
+from pipeline.scene.plain_support import (
+    base_direction,
+    disagreement,
+    find_plain_support,
+    ring_colours,
+    ring_points,
+)
 
 RNG = np.random.default_rng(0)
 W, H, FOCAL = 160, 120, 150.0
@@ -113,7 +119,8 @@ def test_disagreement_is_zero_where_every_photo_sees_the_same_colour_and_ignores
     flat = [np.full((H, W, 3), 0.6, np.float32) for _ in C]
     ring = ring_points(_puck(), np.array([0.0, 0.0, 1.0]), 0.0, np.zeros(3))
     far = np.array([[50.0, 0.0, 0.0]])  # outside every frame
-    score, colours = disagreement(flat, P, C, np.concatenate([ring, far]), np.array([0.0, 0.0, 1.0]), np.zeros(3))
+    colours = ring_colours(flat, P, C, np.concatenate([ring, far]), np.array([0.0, 0.0, 1.0]), np.zeros(3))
+    score = disagreement(colours)
     assert score == pytest.approx(0.0, abs=1e-6)
     assert np.isnan(colours[:, -1]).all()
     assert np.isfinite(score)
