@@ -3,11 +3,12 @@
     python bench/arms.py pair SCENE --arm "" --arm "OPTIONS" [--preset P] [--remap] [--over JSON]
     python bench/arms.py dtu [--preset P] [--reference-cameras] [OPTIONS]
     python bench/arms.py gt SCENE [--preset P] [--over JSON] [OPTIONS]
+    python bench/arms.py real CAPTURE --arm "" --arm "OPTIONS" [--preset P]
 
 ``pair``: a synthetic scene from its photos, every arm on ONE SfM mapping (another mapping of the same photos moves
 the held-out figure by up to about 1 dB, which would hide an option's effect). ``dtu``: DTU scan24 through the
-bench's protocol. ``gt``: a synthetic scene with its ground-truth cameras and masks. ``python bench/arms.py COMMAND
---help`` says more.
+bench's protocol. ``gt``: a synthetic scene with its ground-truth cameras and masks. ``real``: options of training
+and after on a real capture's bench workspace. ``python bench/arms.py COMMAND --help`` says more.
 """
 from __future__ import annotations
 
@@ -129,6 +130,39 @@ def run_arm(scene: str, over: dict, mapping: Path, preset: str, options: list[st
     return ev.run_synthetic(spec, work, {"arm": (options, over)})
 
 
+REAL_HELP = """Options of training, mesh and texture on a real capture of the bench (``mouse``, ``blowtorch``), every
+arm on the cameras, masks and depth of its bench row (``bench/runs/real_<capture>``, made by ``python bench/run.py
+--only <capture>`` when missing) and the row's split (every 7th photo held out):
+
+    python bench/arms.py real mouse --arm "" --arm "--train.hull-gate-px 0"
+
+Prints one line per arm: the row's held-out PSNR (raw, gain-fitted, re-aimed), at the training photos, and the share
+of the held-out masks the mesh covers; each arm's run is kept in ``bench/runs/work/real_arm/<capture>/<k>``.
+"""
+
+
+def real(argv: list[str]) -> None:
+    from dvr.data import list_images
+
+    ap = _parser("real", REAL_HELP)
+    ap.add_argument("capture", choices=sorted(ev.REAL))
+    ap.add_argument("--arm", action="append", default=None, help='options of one arm ("" for the defaults)')
+    ap.add_argument("--preset", default="default")
+    a = ap.parse_args(argv)
+    full = ev.RUNS / f"real_{a.capture}"
+    if not (full / ".stages" / "depth.json").exists():
+        sys.exit(f"{full}: no bench workspace; make it with python bench/run.py --only {a.capture}")
+    paths = list_images(full / "images")
+    held = ev.dtu_heldout(len(paths))
+    for k, arm in enumerate(a.arm if a.arm is not None else [""]):
+        ws = ev.fresh_folder(ev.RUNS / "work" / "real_arm" / a.capture / str(k)) / "ws"
+        ev.subset_workspace(full, ws, [i for i in range(len(paths)) if i not in held])
+        ev.train_mesh_texture(ws, a.preset, arm.split())
+        r = ev.photo_scores(full, ws, paths, held)
+        print(f"{arm or '(defaults)':40s} " + "  ".join(f"{key} {r[key]:.4f}" for key in (
+            "psnr", "psnr_gain_fit", "psnr_reaimed", "psnr_train", "mask_covered")), flush=True)
+
+
 def _parser(command: str, text: str) -> argparse.ArgumentParser:
     return argparse.ArgumentParser(prog=f"bench/arms.py {command}", description=text,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -185,7 +219,7 @@ def gt(argv: list[str]) -> None:
                       **{k: r.get(k) for k in keys}}))
 
 
-COMMANDS = {"pair": pair, "dtu": dtu, "gt": gt}
+COMMANDS = {"pair": pair, "dtu": dtu, "gt": gt, "real": real}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -195,7 +229,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     ap = argparse.ArgumentParser(prog="bench/arms.py", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("command", choices=sorted(COMMANDS), help="pair, dtu or gt (each has its own --help)")
+    ap.add_argument("command", choices=sorted(COMMANDS), help="pair, dtu, gt or real (each has its own --help)")
     ap.parse_args(argv[:1])
 
 

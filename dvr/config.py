@@ -142,6 +142,8 @@ class TrainConfig:
     """Explain highlights that move with the camera by a view-dependent colour that the texture leaves out."""
     hull_gate: bool = True
     """Apply the occupancy loss only where the visual hull allows the object, so one wrong mask is outvoted."""
+    hull_gate_px: float = 4.0
+    """The hull gate counts a view only where the point projects at least this many pixels from its mask."""
     weights: LossWeights = field(default_factory=LossWeights)
     """Loss weights."""
     field: FieldConfig = field(default_factory=FieldConfig)

@@ -157,6 +157,10 @@ class Trainer:
         self.near = sure_background(cfg, data)
         self.data = data = training_frame(cfg, data, self.near)
         self.rules = carve_rules(cfg, data, self.near)  # once: the carving term asks at every step
+        # the hull gate's masks: each widened by hull_gate_px, so a point a pixel or two outside a view's silhouette
+        # (where the views' masks disagree by their edges) is no mask error that the gate must outvote
+        self.gate_masks = near_object(data.masks, cfg.hull_gate_px) if cfg.hull_gate and cfg.hull_gate_px > 0 \
+            else data.masks
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.device = data.masks.device
@@ -310,6 +314,11 @@ class Trainer:
         """(M,) True where the masks carve the points (:func:`outside_hull` with this run's rules)."""
         return outside_hull(pts, self.data.P, self.data.masks, **self.rules)
 
+    def gated(self, pts: torch.Tensor) -> torch.Tensor:
+        """(M,) True where the hull gate holds the occupancy term back: the masks, each widened by ``hull_gate_px``,
+        carve the points (:func:`outside_hull` with this run's rules)."""
+        return outside_hull(pts, self.data.P, self.gate_masks, **self.rules)
+
     def below_support(self, pts: torch.Tensor) -> torch.Tensor:
         """(M,) True for points below the support plane (none without one)."""
         g = self.data.cams.ground
@@ -370,14 +379,14 @@ class Trainer:
 
     def occupancy_points(self, batch: RayBatchRender) -> torch.Tensor:
         """Points pushed occupied: for mask rays the rendering misses, the sample of largest logit (with
-        ``hull_gate``, only where the other masks do not carve it)."""
+        ``hull_gate``, only where the other masks, each widened by ``hull_gate_px``, do not carve it)."""
         o, d, surface = batch.origins, batch.dirs, batch.surface
         missed = batch.in_mask & (surface.status == MISS)
         points = (o + surface.max_depth[:, None] * d)[missed]
         if self.cfg.hull_gate and points.shape[0]:
             # a mask pixel whose best point the other masks carve is a mask error, not missing surface: pushing it
             # occupied against the carving grows floaters (a speck of floor kept in one view's automatic mask)
-            points = points[~self.carved(points)]
+            points = points[~self.gated(points)]
         return points
 
     def render_sparse_depth(self, step: int) -> SparseDepthRender | None:

@@ -17,6 +17,8 @@ class MasksConfig:
     """A point is background only when at least this many views see it outside their mask."""
     carve_fraction: Fraction = 0.0
     """A point is background only when this share of the views that see it, too, see it outside their mask; 0: off."""
+    keep_min_views: int = 3
+    """No visual hull carves a sparse point inside the object's sphere that this many views observe; 0: off."""
     vote_rounds: int = 2
     """Rounds of multi-view voting: the hull of the current masks, then GrabCut inside its silhouette."""
     floor_rounds: int = 6

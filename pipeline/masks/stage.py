@@ -17,7 +17,8 @@ images (EXIF orientation applied, resized to the image size). Automatic masks us
    object's sphere its background labels are only probable (:func:`support_in_sphere`);
 2. GrabCut in every image, seeded by those;
 3. multi-view consistency, ``vote_rounds`` times: the visual hull of all masks, carving a point only when
-   ≥ ``carve_min_views`` views and ≥ ``carve_fraction`` of those that see it see it as background, is re-projected
+   ≥ ``carve_min_views`` views and ≥ ``carve_fraction`` of those that see it see it as background (never the cell of a
+   sparse point on the object that ``keep_min_views`` views observe, :func:`kept_points`), is re-projected
    into every view as an upper bound, and GrabCut refines inside it to the image edges — a mistake in one view is
    outvoted by the others; with a support plane, up to ``floor_rounds`` more rounds that change only the pixels
    whose ray passes under the object (:func:`low_band`): the floor between an object's legs, in its shadow and seen
@@ -41,7 +42,7 @@ import torch
 from dvr.atomic import write_image, write_json
 from dvr.cameras import Cameras, load_cameras, plane_height, project_points, sphere_bounds, to_normalized
 from dvr.data import list_images, pad_stack, read_mask
-from dvr.hull import grid_points, hull_logits, mask_lookup
+from dvr.hull import grid_points, hull_inside, inside_logits, mask_lookup
 from pipeline.errors import StageError
 from pipeline.masks.config import MasksConfig
 from pipeline.masks.saliency import evidence, first_labels, vote_prior
@@ -260,21 +261,51 @@ def soften_beyond(lab: np.ndarray, cams: Cameras, i: int, footprint) -> np.ndarr
     return lab
 
 
+def kept_points(pts_n: np.ndarray | None, obs: dict | None, cams: Cameras, min_views: int) -> np.ndarray | None:
+    """(M, 3) the sparse points (normalized frame) no visual hull of the masks may carve: inside the object's sphere
+    (radius < 0.9), above the support plane's ``GROUND_BAND``, observed by at least ``min_views`` views (``obs``,
+    :func:`_tracks`). A point triangulated from several views lies on the object's surface: masks that miss it are
+    wrong there (a white table under a cream rim), and a hull that carved it would cut it from every view. None
+    without points or with ``min_views`` < 1."""
+    if pts_n is None or obs is None or min_views < 1:
+        return None
+    views = np.bincount(np.concatenate([np.asarray(v, int) for v in obs.values()] + [np.zeros(0, int)]),
+                        minlength=len(pts_n))
+    keep = (views >= min_views) & (np.linalg.norm(pts_n, axis=1) < 0.9)
+    if cams.ground is not None:
+        keep &= plane_height(cams.ground, pts_n) > GROUND_BAND
+    return pts_n[keep] if keep.any() else None
+
+
+def lattice_corners(points: np.ndarray, res: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Index arrays into a (res+1)³ lattice over [-1, 1]³ (:func:`dvr.hull.grid_points`) of the 8 corners of the
+    cell holding each of ``points`` (M, 3) inside the cube."""
+    cell = np.floor((points + 1.0) * (res / 2.0)).astype(int)
+    cell = cell[((cell >= 0) & (cell < res)).all(1)]
+    corners = np.concatenate([cell + np.array(o) for o in np.ndindex(2, 2, 2)])
+    return corners[:, 0], corners[:, 1], corners[:, 2]
+
+
 @torch.no_grad()
 def visual_hull(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
-                min_fraction: float = 0.0) -> torch.Tensor:
+                min_fraction: float = 0.0, keep: np.ndarray | None = None) -> torch.Tensor:
     """:func:`dvr.hull.hull_logits` of ``masks`` (one bool array per view, each its own size; carving with
-    ``min_views`` and ``min_fraction``; nothing below the support plane)."""
+    ``min_views`` and ``min_fraction``; nothing below the support plane); the cells holding the points ``keep``
+    (:func:`kept_points`) stay inside."""
     canvas, sizes = pad_stack([m.astype(np.float32) for m in masks])
-    return hull_logits(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res=res, min_views=min_views,
-                       min_fraction=min_fraction, slope_cells=1.0, ground=cams.ground, sizes=torch.from_numpy(sizes))
+    inside = hull_inside(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res, min_views=min_views,
+                         min_fraction=min_fraction, ground=cams.ground, sizes=torch.from_numpy(sizes))
+    if keep is not None and len(keep):
+        inside[lattice_corners(keep, res)] = True
+    return inside_logits(inside, slope_cells=1.0)
 
 
 @torch.no_grad()
 def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
-                     logits: torch.Tensor | None = None, min_fraction: float = 0.0) -> list[np.ndarray]:
-    """Render the visual hull of ``masks`` (:func:`visual_hull`; its ``logits`` when already built) into every
-    view: one bool array per view.
+                     logits: torch.Tensor | None = None, min_fraction: float = 0.0,
+                     keep: np.ndarray | None = None) -> list[np.ndarray]:
+    """Render the visual hull of ``masks`` (:func:`visual_hull`, holding the points ``keep``; its ``logits`` when
+    already built) into every view: one bool array per view.
 
     The hull's logit volume becomes a mesh (marching cubes) and the ray of every pixel centre in the box of its
     projection is cast against it (:meth:`pipeline.render.raycast.MeshCaster.covered_pixels`), far faster than
@@ -283,7 +314,7 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     import trimesh
     from skimage import measure
 
-    lg = (visual_hull(masks, cams, res, min_views, min_fraction) if logits is None else logits).cpu().numpy()
+    lg = (visual_hull(masks, cams, res, min_views, min_fraction, keep) if logits is None else logits).cpu().numpy()
     if lg.max() <= 0 or lg.min() > 0:
         return [np.full(m.shape, lg.min() > 0) for m in masks]
     v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
@@ -293,7 +324,8 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
             for i, (H, W) in enumerate(m.shape for m in masks)]
 
 
-def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, logits: torch.Tensor | None = None):
+def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, logits: torch.Tensor | None = None,
+                   keep: np.ndarray | None = None):
     """:func:`pipeline.scene.support.footprint_prism` of the visual hull of ``masks`` (carving with ``carve_min_views``;
     its :func:`visual_hull` ``logits`` when already built):
     the hull's grid cells more than ``footprint_hull_height`` above the support plane stand for the object's
@@ -304,7 +336,8 @@ def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, log
     seen over it, is background too. None when no cell stands that high."""
     canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
     P = torch.from_numpy(cams.P)
-    lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction) if logits is None else logits
+    lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction, keep) if logits is None \
+        else logits
     cells = grid_points(cfg.hull_res, dtype=torch.float64)[lg.reshape(-1).cpu() > 0]
     _, seen = mask_lookup(cells, P, canvas, sizes)  # in front of the camera and inside its own image
     # the hull is only carved where the views see
@@ -355,6 +388,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     pts_n = None
     if xyz is not None and len(xyz):
         pts_n = to_normalized(xyz, cams.scale_mat, uniform=True)
+    keep = kept_points(pts_n, obs, cams, cfg.keep_min_views)
     footprint, used = None, None
     if cams.ground is not None and cfg.footprint_margin >= 0:
         if pts_n is not None:
@@ -393,7 +427,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     first_hull = None  # built once when the footprint and the first vote both need it
     # the footprint of the first masks' hull: alone (too few points), or united with the points' prism
     if (used is False or unite) and cfg.footprint_hull_height > 0:
-        first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction)
+        first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction, keep)
         from_hull = hull_footprint(first, cams, cfg, first_hull)
         if unite:
             footprint, used = united_footprint(footprint, from_hull), "sparse points and masks' hull"
@@ -405,12 +439,13 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
                                else "the first masks' hull stands nowhere above the plane: no footprint"))
         for i, img in enumerate(imgs if footprint is not None else []):  # hard background seeds for the vote rounds
             seeds[i][~object_region(cams, i, img.shape[0], img.shape[1], footprint)] = cv2.GC_BGD
-    current, sil, _ = vote(imgs, seeds, first, cams, cfg, max(1, cfg.vote_rounds), first_hull=first_hull, sal=sal)
+    current, sil, _ = vote(imgs, seeds, first, cams, cfg, max(1, cfg.vote_rounds), first_hull=first_hull, sal=sal,
+                           keep=keep)
     changed = []
     if cams.ground is not None and cfg.floor_rounds > 0:
         low = [low_band(cams, i, m.shape[0], m.shape[1], cfg.floor_band) for i, m in enumerate(current)]
         current, sil, changed = vote(imgs, seeds, current, cams, cfg, cfg.floor_rounds, cfg.floor_settle, low,
-                                     sal=sal)
+                                     sal=sal, keep=keep)
         print(f"masks: {len(changed)} floor rounds under the object; each changed "
               + ", ".join(f"{c:.2%}" for c in changed) + " of the object's pixels")
     conf = {}
@@ -450,10 +485,11 @@ def vote_labels(seed: np.ndarray, sil: np.ndarray, kernel: np.ndarray) -> np.nda
 
 def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray], cams: Cameras, cfg: MasksConfig,
          rounds: int, settle: float = 0.0, region: list[np.ndarray] | None = None,
-         first_hull: torch.Tensor | None = None, sal: list[np.ndarray] | None = None
+         first_hull: torch.Tensor | None = None, sal: list[np.ndarray] | None = None, keep: np.ndarray | None = None
          ) -> tuple[list[np.ndarray], list[np.ndarray], list[float]]:
     """Multi-view vote rounds from the masks ``start``: the hull of the current masks (carving needs
-    ``carve_min_views``; ``first_hull``: that of ``start`` when already built) is an upper bound in every view
+    ``carve_min_views``; ``first_hull``: that of ``start`` when already built; the points ``keep`` never carved,
+    :func:`kept_points`) is an upper bound in every view
     (:func:`vote_labels`) and GrabCut refines inside it, ``rounds`` times or until a round changes fewer than
     ``settle`` of the object's pixels; with ``region`` (a bool array per view) only those pixels change, and a round
     that changes more than the one before is undone and ends them (it eats into the object). Returns
@@ -462,7 +498,7 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
     current, sil, changed = start, [], []
     for rnd in range(rounds):
         sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views, first_hull if rnd == 0 else None,
-                               cfg.carve_fraction)
+                               cfg.carve_fraction, keep)
         labs = [vote_labels(seeds[i], sil[i], kernel) for i in range(len(imgs))]
         if sal is not None:  # a probable start inside the hull's bound, never past it
             labs = [vote_prior(lab, s) for lab, s in zip(labs, sal)]

@@ -72,3 +72,26 @@ def test_each_command_takes_its_own_options(tmp_path, monkeypatch):
         with pytest.raises(SystemExit):
             arms.main(argv)
     assert len(runs) == 2
+
+
+def test_real_trains_each_arm_on_the_bench_workspace_without_its_held_out_photos(tmp_path, monkeypatch, capsys):
+    """``real``: every arm trained on the bench row's workspace less every 7th photo, with its own options; without
+    that workspace one line says how to make it."""
+    monkeypatch.setattr(arms.ev, "RUNS", tmp_path)
+    with pytest.raises(SystemExit, match="python bench/run.py --only mouse"):
+        arms.main(["real", "mouse"])
+    full = tmp_path / "real_mouse"
+    (full / ".stages").mkdir(parents=True)
+    (full / ".stages" / "depth.json").write_text("{}")
+    (full / "images").mkdir()
+    for i in range(9):
+        (full / "images" / f"{i:02d}.png").write_bytes(b"")
+    subsets, trained = [], []
+    monkeypatch.setattr(arms.ev, "subset_workspace", lambda src, ws, keep: subsets.append(list(keep)))
+    monkeypatch.setattr(arms.ev, "train_mesh_texture", lambda ws, preset, options: trained.append((preset, options)))
+    monkeypatch.setattr(arms.ev, "photo_scores", lambda full, ws, paths, held: dict.fromkeys(
+        ("psnr", "psnr_gain_fit", "psnr_reaimed", "psnr_train", "mask_covered"), float(len(held))))
+    arms.main(["real", "mouse", "--arm=", "--arm=--train.hull-gate-px 0"])
+    assert subsets == [[1, 2, 3, 4, 5, 6, 8]] * 2
+    assert trained == [("default", []), ("default", ["--train.hull-gate-px", "0"])]
+    assert "psnr 2.0000" in capsys.readouterr().out
