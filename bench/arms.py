@@ -142,8 +142,6 @@ of the held-out masks the mesh covers; each arm's run is kept in ``bench/runs/wo
 
 
 def real(argv: list[str]) -> None:
-    from dvr.data import list_images
-
     ap = _parser("real", REAL_HELP)
     ap.add_argument("capture", choices=sorted(ev.REAL))
     ap.add_argument("--arm", action="append", default=None, help='options of one arm ("" for the defaults)')
@@ -152,13 +150,9 @@ def real(argv: list[str]) -> None:
     full = ev.RUNS / f"real_{a.capture}"
     if not (full / ".stages" / "depth.json").exists():
         sys.exit(f"{full}: no bench workspace; make it with python bench/run.py --only {a.capture}")
-    paths = list_images(full / "images")
-    held = ev.dtu_heldout(len(paths))
     for k, arm in enumerate(a.arm if a.arm is not None else [""]):
         ws = ev.fresh_folder(ev.RUNS / "work" / "real_arm" / a.capture / str(k)) / "ws"
-        ev.subset_workspace(full, ws, [i for i in range(len(paths)) if i not in held])
-        ev.train_mesh_texture(ws, a.preset, arm.split())
-        r = ev.photo_scores(full, ws, paths, held)
+        r = ev.heldout_scores(full, ws, a.preset, arm.split())
         print(f"{arm or '(defaults)':40s} " + "  ".join(f"{key} {r[key]:.4f}" for key in (
             "psnr", "psnr_gain_fit", "psnr_reaimed", "psnr_train", "mask_covered")), flush=True)
 

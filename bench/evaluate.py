@@ -497,11 +497,24 @@ def photo_scores(full: Path, ws: Path, paths: list[Path], held: list[int]) -> di
             "reaim_deg": float(np.mean([r[1] for r in reaimed])), "psnr_per_view": [round(x, 2) for x in psnr]}
 
 
+def heldout_scores(full: Path, ws: Path, preset: str, options: list[str]) -> dict:
+    """A real capture's workspace ``full`` (cameras, masks, depth of every photo) trained into ``ws`` without every
+    7th photo (:func:`dtu_heldout`) with the preset and ``options``: :func:`photo_scores` at the photos held out, and
+    ``views``, the split's counts."""
+    from dvr.data import list_images
+
+    paths = list_images(full / "images")
+    held = dtu_heldout(len(paths))
+    subset_workspace(full, ws, [i for i in range(len(paths)) if i not in held])
+    train_mesh_texture(ws, preset, options)
+    views = {"train": len(paths) - len(held), "heldout": len(held), "registered": len(paths)}
+    return {**photo_scores(full, ws, paths, held), "views": views}
+
+
 def run_real(spec: dict, work: Path) -> dict:
     """A real capture of :data:`REAL` from its photos alone, as a user runs it (default options): cameras, masks and
     depth on every photo, training without every 7th registered photo, PSNR there; with hand masks, the automatic
     masks' IoU against them."""
-    from dvr.data import list_images
     from pipeline.workspace import Workspace
 
     src = REAL[spec["scene"]]
@@ -509,20 +522,16 @@ def run_real(spec: dict, work: Path) -> dict:
     if not (full / ".stages" / "depth.json").exists():
         shutil.rmtree(full, ignore_errors=True)
         stages(("cameras", "masks", "depth"), full, config(None), images=src / "images")
-    paths = list_images(full / "images")
-    held = dtu_heldout(len(paths))
     ws = work / "ws"
-    subset_workspace(full, ws, [i for i in range(len(paths)) if i not in held])
-    train_mesh_texture(ws, spec["preset"], [])
-    scores = photo_scores(full, ws, paths, held)
+    scores = heldout_scores(full, ws, spec["preset"], [])
     shared = Workspace(full).seconds()
     secs = {**shared, **{k: v for k, v in Workspace(ws).seconds().items() if k not in shared}}
     stamp = Workspace(full).stamp("cameras") or {}
     n_photos = len([p for p in (src / "images").iterdir() if p.is_file()])
     iou = hand_mask_iou(full, src / "masks") if (src / "masks").is_dir() else None
     return {"seconds": secs, "chamfer_rel": None, "fscore": None, **scores, "mask_iou": iou,
-            "registered": f"{len(paths)}/{n_photos}", "rung": stamp.get("rung"), "support": stamp.get("support"),
-            "views": {"train": len(paths) - len(held), "heldout": len(held), "registered": len(paths)}}
+            "registered": f"{scores['views']['registered']}/{n_photos}", "rung": stamp.get("rung"),
+            "support": stamp.get("support")}
 
 
 def hand_mask_iou(full: Path, hand: Path) -> float:

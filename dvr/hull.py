@@ -135,6 +135,15 @@ def grid_points(res: int, device=None, dtype=torch.float32) -> torch.Tensor:
     return torch.stack([x, y, z], dim=-1).view(-1, 3)
 
 
+def lattice_corners(points: np.ndarray, res: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Index arrays into a (res+1)³ lattice over [-1, 1]³ (:func:`grid_points`) of the 8 corners of the cell holding
+    each of ``points`` (M, 3) inside the cube."""
+    cell = np.floor((points + 1.0) * (res / 2.0)).astype(int)
+    cell = cell[((cell >= 0) & (cell < res)).all(1)]
+    corners = np.concatenate([cell + np.array(o) for o in np.ndindex(2, 2, 2)])
+    return corners[:, 0], corners[:, 1], corners[:, 2]
+
+
 def hull_inside(P: torch.Tensor, masks: torch.Tensor, res: int = 96, **rules) -> np.ndarray:
     """(res+1)³ bool lattice [x, y, z] over [-1, 1]³: inside the visual hull (:func:`outside_hull` with the carving
     ``rules``, its keyword arguments) and the unit sphere. Only the lattice points inside the sphere are projected
@@ -170,11 +179,14 @@ def coarse_points(lattice: np.ndarray, res: int) -> np.ndarray:
 
 
 def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, slope_cells: float = 1.0, clamp: float = 10.0,
-                **rules) -> torch.Tensor:
+                keep: np.ndarray | None = None, **rules) -> torch.Tensor:
     """Logit volume (res+1)³ [x, y, z] of the visual hull (:func:`hull_inside`, :func:`inside_logits`; ``rules``:
     :func:`outside_hull`'s keyword arguments); points outside the unit sphere (or below the support plane
-    ``ground``) are free. Returns a float32 tensor on masks' device."""
+    ``ground``) are free, except the cells holding the points ``keep`` (M, 3), which stay inside whatever the masks
+    say (:func:`lattice_corners`). Returns a float32 tensor on masks' device."""
     inside = hull_inside(P, masks, res, **rules)
+    if keep is not None and len(keep):
+        inside[lattice_corners(keep, res)] = True
     return inside_logits(inside, slope_cells, clamp, device=masks.device)
 
 

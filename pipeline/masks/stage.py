@@ -42,7 +42,7 @@ import torch
 from dvr.atomic import write_image, write_json
 from dvr.cameras import Cameras, load_cameras, plane_height, project_points, sphere_bounds, to_normalized
 from dvr.data import list_images, pad_stack, read_mask
-from dvr.hull import grid_points, hull_inside, inside_logits, mask_lookup
+from dvr.hull import grid_points, hull_logits, mask_lookup
 from pipeline.errors import StageError
 from pipeline.masks.config import MasksConfig
 from pipeline.masks.saliency import evidence, first_labels, vote_prior
@@ -277,15 +277,6 @@ def kept_points(pts_n: np.ndarray | None, obs: dict | None, cams: Cameras, min_v
     return pts_n[keep] if keep.any() else None
 
 
-def lattice_corners(points: np.ndarray, res: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Index arrays into a (res+1)³ lattice over [-1, 1]³ (:func:`dvr.hull.grid_points`) of the 8 corners of the
-    cell holding each of ``points`` (M, 3) inside the cube."""
-    cell = np.floor((points + 1.0) * (res / 2.0)).astype(int)
-    cell = cell[((cell >= 0) & (cell < res)).all(1)]
-    corners = np.concatenate([cell + np.array(o) for o in np.ndindex(2, 2, 2)])
-    return corners[:, 0], corners[:, 1], corners[:, 2]
-
-
 @torch.no_grad()
 def visual_hull(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
                 min_fraction: float = 0.0, keep: np.ndarray | None = None) -> torch.Tensor:
@@ -293,11 +284,9 @@ def visual_hull(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int
     ``min_views`` and ``min_fraction``; nothing below the support plane); the cells holding the points ``keep``
     (:func:`kept_points`) stay inside."""
     canvas, sizes = pad_stack([m.astype(np.float32) for m in masks])
-    inside = hull_inside(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res, min_views=min_views,
-                         min_fraction=min_fraction, ground=cams.ground, sizes=torch.from_numpy(sizes))
-    if keep is not None and len(keep):
-        inside[lattice_corners(keep, res)] = True
-    return inside_logits(inside, slope_cells=1.0)
+    return hull_logits(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res=res, min_views=min_views,
+                       min_fraction=min_fraction, slope_cells=1.0, ground=cams.ground, sizes=torch.from_numpy(sizes),
+                       keep=keep)
 
 
 @torch.no_grad()
@@ -324,8 +313,7 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
             for i, (H, W) in enumerate(m.shape for m in masks)]
 
 
-def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, logits: torch.Tensor | None = None,
-                   keep: np.ndarray | None = None):
+def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, logits: torch.Tensor | None = None):
     """:func:`pipeline.scene.support.footprint_prism` of the visual hull of ``masks`` (carving with ``carve_min_views``;
     its :func:`visual_hull` ``logits`` when already built):
     the hull's grid cells more than ``footprint_hull_height`` above the support plane stand for the object's
@@ -336,8 +324,7 @@ def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, log
     seen over it, is background too. None when no cell stands that high."""
     canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
     P = torch.from_numpy(cams.P)
-    lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction, keep) if logits is None \
-        else logits
+    lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction) if logits is None else logits
     cells = grid_points(cfg.hull_res, dtype=torch.float64)[lg.reshape(-1).cpu() > 0]
     _, seen = mask_lookup(cells, P, canvas, sizes)  # in front of the camera and inside its own image
     # the hull is only carved where the views see

@@ -6,7 +6,16 @@ import torch
 import trimesh
 
 from dvr.data import load_scene
-from dvr.hull import grid_points, hull_bounding_sphere, hull_inside, hull_logits, mask_lookup, near_object, outside_hull
+from dvr.hull import (
+    grid_points,
+    hull_bounding_sphere,
+    hull_inside,
+    hull_logits,
+    lattice_corners,
+    mask_lookup,
+    near_object,
+    outside_hull,
+)
 
 
 def test_bounding_sphere_contains_the_object_and_is_tight(small_ws):
@@ -231,3 +240,9 @@ def test_coarse_points_are_the_fine_lattices_points(small_ws):
         coarse_points(fine, 0)
     with pytest.raises(ValueError, match="cubic lattice"):
         coarse_points(fine[:, :, :-1], 32)
+
+
+def test_lattice_corners_of_a_point_are_its_cells_eight():
+    i, j, k = lattice_corners(np.array([[0.01, -0.01, 0.99], [1.5, 0.0, 0.0]]), 4)
+    assert sorted(zip(i.tolist(), j.tolist(), k.tolist())) == sorted(
+        (2 + a, 1 + b, 3 + c) for a in (0, 1) for b in (0, 1) for c in (0, 1))

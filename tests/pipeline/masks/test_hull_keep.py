@@ -1,9 +1,10 @@
-"""The sparse points no visual hull of the masks carves (pipeline/masks/stage.py ``kept_points``, ``visual_hull``):
-two masks that miss the base of a box carve it from the hull in every view; the points SfM triangulated on that
-base hold it."""
+"""The sparse points no visual hull of the masks carves (pipeline/masks/stage.py ``kept_points``, ``visual_hull``,
+through dvr/hull.py ``hull_logits``' ``keep``): two masks that miss the base of a box carve it from the hull in every
+view; the points SfM triangulated on that base hold it."""
 
 import numpy as np
 
+from dvr.hull import lattice_corners
 from pipeline.masks import stage
 from tests.pipeline.scene.test_support import _box_and_table_masks
 
@@ -47,7 +48,7 @@ def test_points_on_a_base_two_masks_missed_stay_in_the_hull():
     grown = (stage.visual_hull(untouched, cams, RES, 2, keep=points) > 0) & \
         ~(stage.visual_hull(untouched, cams, RES, 2) > 0)
     corners = np.zeros(grown.shape, bool)
-    corners[stage.lattice_corners(points, RES)] = True
+    corners[lattice_corners(points, RES)] = True
     assert not (grown.numpy() & ~corners).any()
 
 
@@ -65,8 +66,3 @@ def test_kept_points_are_the_objects_seen_by_enough_views():
     assert stage.kept_points(None, None, cams, 3) is None
     assert stage.kept_points(pts, {"a": [], "b": []}, cams, 1) is None
 
-
-def test_lattice_corners_of_a_point_are_its_cells_eight():
-    i, j, k = stage.lattice_corners(np.array([[0.01, -0.01, 0.99], [1.5, 0.0, 0.0]]), 4)
-    assert sorted(zip(i.tolist(), j.tolist(), k.tolist())) == sorted(
-        (2 + a, 1 + b, 3 + c) for a in (0, 1) for b in (0, 1) for c in (0, 1))
