@@ -136,8 +136,9 @@ arm on the cameras, masks and depth of its bench row (``bench/runs/real_<capture
 
     python bench/arms.py real mouse --arm "" --arm "--train.hull-gate-px 0"
 
-Prints one line per arm: the row's held-out PSNR (raw, gain-fitted, re-aimed), at the training photos, and the share
-of the held-out masks the mesh covers; each arm's run is kept in ``bench/runs/work/real_arm/<capture>/<k>``.
+Prints one line per arm: the row's held-out PSNR (raw, gain-fitted, re-aimed), at the training photos, the share of
+the held-out masks the mesh covers, and with the capture's hand masks the held-out PSNR over them (``psnr_hand``);
+each arm's run is kept in ``bench/runs/work/real_arm/<capture>/<k>``.
 """
 
 
@@ -152,9 +153,11 @@ def real(argv: list[str]) -> None:
         sys.exit(f"{full}: no bench workspace; make it with python bench/run.py --only {a.capture}")
     for k, arm in enumerate(a.arm if a.arm is not None else [""]):
         ws = ev.fresh_folder(ev.RUNS / "work" / "real_arm" / a.capture / str(k)) / "ws"
-        r = ev.heldout_scores(full, ws, a.preset, arm.split())
+        hand = ev.REAL[a.capture] / "masks"
+        r = ev.heldout_scores(full, ws, a.preset, arm.split(), hand if hand.is_dir() else None)
         print(f"{arm or '(defaults)':40s} " + "  ".join(f"{key} {r[key]:.4f}" for key in (
-            "psnr", "psnr_gain_fit", "psnr_reaimed", "psnr_train", "mask_covered")), flush=True)
+            "psnr", "psnr_gain_fit", "psnr_reaimed", "psnr_train", "mask_covered", "psnr_hand") if key in r),
+              flush=True)
 
 
 def _parser(command: str, text: str) -> argparse.ArgumentParser:

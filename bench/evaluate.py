@@ -463,10 +463,12 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
             "views": {"train": len(names) - len(held), "heldout": len(held), "registered": len(names)}}
 
 
-def photo_scores(full: Path, ws: Path, paths: list[Path], held: list[int]) -> dict:
+def photo_scores(full: Path, ws: Path, paths: list[Path], held: list[int], hand: Path | None = None) -> dict:
     """The textured mesh of ``ws`` (trained without the ``held`` views of ``full``, whose images are ``paths``) at
     every photo's pose: PSNR at the held-out photos (raw, on the mesh's pixels, with the photo's own colour gains
-    fitted, re-aimed) and at the training photos, over the automatic mask ∪ the mesh's pixels."""
+    fitted, re-aimed) and at the training photos, over the automatic mask ∪ the mesh's pixels; with ``hand`` (a
+    folder of :func:`undistorted_hand_masks`) also ``psnr_hand``, at the held-out photos over the hand mask ∪ the
+    mesh's pixels: the object's true outline, which does not grow or shrink with the automatic masks."""
     from dvr.cameras import load_cameras
     from dvr.metrics import masked_psnr
     from pipeline.render.textured import TexturedCaster, render_textured
@@ -474,7 +476,7 @@ def photo_scores(full: Path, ws: Path, paths: list[Path], held: list[int]) -> di
     cams = load_cameras(full / "cameras.npz")
     tm, tex = textured(ws)
     caster = TexturedCaster(tm.vertices, tm.faces, tm.visual.uv, tex)
-    psnr, psnr_hit, cover, psnr_train, fitted, fitted_train, reaimed = [], [], [], [], [], [], []
+    psnr, psnr_hit, cover, psnr_train, fitted, fitted_train, reaimed, by_hand = [], [], [], [], [], [], [], []
     for i, path in enumerate(paths):
         photo = _read_rgb(path)
         h, w = photo.shape[:2]
@@ -490,17 +492,20 @@ def photo_scores(full: Path, ws: Path, paths: list[Path], held: list[int]) -> di
         fitted.append(image_psnr(img, hit, photo, mask, gain_fit=True))
         psnr_hit.append(masked_psnr(img, photo, hit))
         cover.append(float((mask & hit).sum() / max(1, mask.sum())))
-    return {"psnr": float(np.mean(psnr)), "psnr_on_model": float(np.mean(psnr_hit)),
+        if hand is not None:
+            by_hand.append(image_psnr(img, hit, photo, hand_mask(hand, path.stem, (h, w))))
+    hand_score = {"psnr_hand": float(np.mean(by_hand))} if by_hand else {}
+    return {**hand_score, "psnr": float(np.mean(psnr)), "psnr_on_model": float(np.mean(psnr_hit)),
             "psnr_train": float(np.mean(psnr_train)), "psnr_gain_fit": float(np.mean(fitted)),
             "psnr_train_gain_fit": float(np.mean(fitted_train)), "mask_covered": float(np.mean(cover)),
             "psnr_reaimed": float(np.mean([r[0] for r in reaimed])),
             "reaim_deg": float(np.mean([r[1] for r in reaimed])), "psnr_per_view": [round(x, 2) for x in psnr]}
 
 
-def heldout_scores(full: Path, ws: Path, preset: str, options: list[str]) -> dict:
+def heldout_scores(full: Path, ws: Path, preset: str, options: list[str], hand: Path | None = None) -> dict:
     """A real capture's workspace ``full`` (cameras, masks, depth of every photo) trained into ``ws`` without every
-    7th photo (:func:`dtu_heldout`) with the preset and ``options``: :func:`photo_scores` at the photos held out, and
-    ``views``, the split's counts."""
+    7th photo (:func:`dtu_heldout`) with the preset and ``options``: :func:`photo_scores` at the photos held out (over
+    the hand masks too, given the capture's ``hand`` masks folder), and ``views``, the split's counts."""
     from dvr.data import list_images
 
     paths = list_images(full / "images")
@@ -508,7 +513,8 @@ def heldout_scores(full: Path, ws: Path, preset: str, options: list[str]) -> dic
     subset_workspace(full, ws, [i for i in range(len(paths)) if i not in held])
     train_mesh_texture(ws, preset, options)
     views = {"train": len(paths) - len(held), "heldout": len(held), "registered": len(paths)}
-    return {**photo_scores(full, ws, paths, held), "views": views}
+    undistorted = undistorted_hand_masks(full, hand) if hand is not None else None
+    return {**photo_scores(full, ws, paths, held, undistorted), "views": views}
 
 
 def run_real(spec: dict, work: Path) -> dict:
@@ -523,21 +529,22 @@ def run_real(spec: dict, work: Path) -> dict:
         shutil.rmtree(full, ignore_errors=True)
         stages(("cameras", "masks", "depth"), full, config(None), images=src / "images")
     ws = work / "ws"
-    scores = heldout_scores(full, ws, spec["preset"], [])
+    hand = src / "masks" if (src / "masks").is_dir() else None
+    scores = heldout_scores(full, ws, spec["preset"], [], hand)
     shared = Workspace(full).seconds()
     secs = {**shared, **{k: v for k, v in Workspace(ws).seconds().items() if k not in shared}}
     stamp = Workspace(full).stamp("cameras") or {}
     n_photos = len([p for p in (src / "images").iterdir() if p.is_file()])
-    iou = hand_mask_iou(full, src / "masks") if (src / "masks").is_dir() else None
+    iou = hand_mask_iou(full, hand) if hand is not None else None
     return {"seconds": secs, "chamfer_rel": None, "fscore": None, **scores, "mask_iou": iou,
             "registered": f"{scores['views']['registered']}/{n_photos}", "rung": stamp.get("rung"),
             "support": stamp.get("support")}
 
 
-def hand_mask_iou(full: Path, hand: Path) -> float:
-    """Mean IoU of a workspace's automatic masks against hand masks of the original photos (``hand``, named like
-    them): each hand mask goes the photo's way, to the size SfM saw, through COLMAP's undistortion of its model and
-    to the training images' size."""
+def undistorted_hand_masks(full: Path, hand: Path) -> Path:
+    """Hand masks of the original photos (``hand``, named like them) the way of a workspace's photos: to the size SfM
+    saw, through COLMAP's undistortion of its model; the folder of the results (``<name>.png`` at the undistorted
+    size, ``full/hand_masks_undistorted/images``)."""
     import cv2
 
     from pipeline.colmaplib import pycolmap
@@ -554,10 +561,26 @@ def hand_mask_iou(full: Path, hand: Path) -> float:
     out = full / "hand_masks_undistorted"
     shutil.rmtree(out, ignore_errors=True)
     pycolmap.undistort_images(out, model, tmp, output_type="COLMAP")
+    return out / "images"
+
+
+def hand_mask(folder: Path, stem: str, shape: tuple[int, int]) -> np.ndarray:
+    """The undistorted hand mask ``stem`` of :func:`undistorted_hand_masks`'s ``folder`` at ``shape`` (H, W), bool."""
+    import cv2
+
+    m = cv2.imread(str(folder / f"{stem}.png"), cv2.IMREAD_GRAYSCALE)
+    return cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_AREA) > 127
+
+
+def hand_mask_iou(full: Path, hand: Path) -> float:
+    """Mean IoU of a workspace's automatic masks against hand masks of the original photos (``hand``, named like
+    them), brought to the training images (:func:`undistorted_hand_masks`, then their size)."""
+    import cv2
+
+    folder = undistorted_hand_masks(full, hand)
     ious = []
     for p in sorted((full / "masks").glob("*.png")):
         auto = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 127
-        m = cv2.imread(str(out / "images" / f"{p.stem}.png"), cv2.IMREAD_GRAYSCALE)
-        m = cv2.resize(m, auto.shape[::-1], interpolation=cv2.INTER_AREA) > 127
+        m = hand_mask(folder, p.stem, auto.shape)
         ious.append(float((auto & m).sum() / max(1, (auto | m).sum())))
     return float(np.mean(ious))

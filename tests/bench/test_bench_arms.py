@@ -89,9 +89,19 @@ def test_real_trains_each_arm_on_the_bench_workspace_without_its_held_out_photos
     subsets, trained = [], []
     monkeypatch.setattr(arms.ev, "subset_workspace", lambda src, ws, keep: subsets.append(list(keep)))
     monkeypatch.setattr(arms.ev, "train_mesh_texture", lambda ws, preset, options: trained.append((preset, options)))
-    monkeypatch.setattr(arms.ev, "photo_scores", lambda full, ws, paths, held: dict.fromkeys(
-        ("psnr", "psnr_gain_fit", "psnr_reaimed", "psnr_train", "mask_covered"), float(len(held))))
+    monkeypatch.setattr(arms.ev, "photo_scores", lambda full, ws, paths, held, hand=None: {**dict.fromkeys(
+        ("psnr", "psnr_gain_fit", "psnr_reaimed", "psnr_train", "mask_covered"), float(len(held))),
+        **({"psnr_hand": 7.0} if hand is not None else {})})
+    monkeypatch.setattr(arms.ev, "REAL", {"mouse": tmp_path / "photos"})  # a capture without hand masks
     arms.main(["real", "mouse", "--arm=", "--arm=--train.hull-gate-px 0"])
     assert subsets == [[1, 2, 3, 4, 5, 6, 8]] * 2
     assert trained == [("default", []), ("default", ["--train.hull-gate-px", "0"])]
-    assert "psnr 2.0000" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "psnr 2.0000" in out and "psnr_hand" not in out
+    # with hand masks the held-out photos are scored over them too
+    (tmp_path / "photos" / "masks").mkdir(parents=True)
+    undistorted = []
+    monkeypatch.setattr(arms.ev, "undistorted_hand_masks", lambda full, hand: undistorted.append(hand) or hand)
+    arms.main(["real", "mouse", "--arm="])
+    assert undistorted == [tmp_path / "photos" / "masks"]
+    assert "psnr_hand 7.0000" in capsys.readouterr().out

@@ -14,6 +14,7 @@ from pipeline.masks.stereo import (
     BACKGROUND,
     OBJECT,
     UNDECIDED,
+    box_sums,
     neighbours,
     stereo_costs,
     stereo_labels,
@@ -82,6 +83,21 @@ def test_costs_shapes_and_smoke():
     assert c_in.shape == c_out.shape == (4, 12, 16)
     assert not torch.isnan(c_in).any() and not torch.isnan(c_out).any()
     assert neighbours(cams.centers, 2).shape == (4, 2)
+
+
+def test_box_sums_match_the_average_pool_times_the_window_at_every_pixel():
+    """The summed-area table gives each clipped window's sum: ``avg_pool2d`` without the padding, times the pixels
+    the window holds (the borders' windows hold fewer), to float32 rounding."""
+    torch.manual_seed(0)
+    x = torch.rand(3, 2, 17, 23)
+    for p in (1, 3, 5):
+        mean = torch.nn.functional.avg_pool2d(x, p, 1, p // 2, count_include_pad=False)
+        count = torch.nn.functional.avg_pool2d(torch.ones(1, 1, 17, 23), p, 1, p // 2, count_include_pad=True,
+                                               divisor_override=1)
+        assert box_sums(x, p).shape == x.shape
+        assert torch.allclose(box_sums(x, p), mean * count, atol=1e-5)
+    with pytest.raises(ValueError, match="odd"):
+        box_sums(x, 4)
 
 
 def test_bad_input():
