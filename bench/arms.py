@@ -151,10 +151,11 @@ def real(argv: list[str]) -> None:
     full = ev.RUNS / f"real_{a.capture}"
     if not (full / ".stages" / "depth.json").exists():
         sys.exit(f"{full}: no bench workspace; make it with python bench/run.py --only {a.capture}")
+    hand = ev.REAL[a.capture] / "masks"
+    hand = ev.undistorted_hand_masks(full, hand) if hand.is_dir() else None
     for k, arm in enumerate(a.arm if a.arm is not None else [""]):
         ws = ev.fresh_folder(ev.RUNS / "work" / "real_arm" / a.capture / str(k)) / "ws"
-        hand = ev.REAL[a.capture] / "masks"
-        r = ev.heldout_scores(full, ws, a.preset, arm.split(), hand if hand.is_dir() else None)
+        r = ev.heldout_scores(full, ws, a.preset, arm.split(), hand)
         print(f"{arm or '(defaults)':40s} " + "  ".join(f"{key} {r[key]:.4f}" for key in (
             "psnr", "psnr_gain_fit", "psnr_reaimed", "psnr_train", "mask_covered", "psnr_hand") if key in r),
               flush=True)

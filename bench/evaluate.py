@@ -505,7 +505,8 @@ def photo_scores(full: Path, ws: Path, paths: list[Path], held: list[int], hand:
 def heldout_scores(full: Path, ws: Path, preset: str, options: list[str], hand: Path | None = None) -> dict:
     """A real capture's workspace ``full`` (cameras, masks, depth of every photo) trained into ``ws`` without every
     7th photo (:func:`dtu_heldout`) with the preset and ``options``: :func:`photo_scores` at the photos held out (over
-    the hand masks too, given the capture's ``hand`` masks folder), and ``views``, the split's counts."""
+    the hand masks too, given their folder ``hand`` made by :func:`undistorted_hand_masks`), and ``views``, the
+    split's counts."""
     from dvr.data import list_images
 
     paths = list_images(full / "images")
@@ -513,8 +514,7 @@ def heldout_scores(full: Path, ws: Path, preset: str, options: list[str], hand: 
     subset_workspace(full, ws, [i for i in range(len(paths)) if i not in held])
     train_mesh_texture(ws, preset, options)
     views = {"train": len(paths) - len(held), "heldout": len(held), "registered": len(paths)}
-    undistorted = undistorted_hand_masks(full, hand) if hand is not None else None
-    return {**photo_scores(full, ws, paths, held, undistorted), "views": views}
+    return {**photo_scores(full, ws, paths, held, hand), "views": views}
 
 
 def run_real(spec: dict, work: Path) -> dict:
@@ -529,13 +529,13 @@ def run_real(spec: dict, work: Path) -> dict:
         shutil.rmtree(full, ignore_errors=True)
         stages(("cameras", "masks", "depth"), full, config(None), images=src / "images")
     ws = work / "ws"
-    hand = src / "masks" if (src / "masks").is_dir() else None
+    hand = undistorted_hand_masks(full, src / "masks") if (src / "masks").is_dir() else None
     scores = heldout_scores(full, ws, spec["preset"], [], hand)
     shared = Workspace(full).seconds()
     secs = {**shared, **{k: v for k, v in Workspace(ws).seconds().items() if k not in shared}}
     stamp = Workspace(full).stamp("cameras") or {}
     n_photos = len([p for p in (src / "images").iterdir() if p.is_file()])
-    iou = hand_mask_iou(full, hand) if hand is not None else None
+    iou = masks_iou(full, hand) if hand is not None else None
     return {"seconds": secs, "chamfer_rel": None, "fscore": None, **scores, "mask_iou": iou,
             "registered": f"{scores['views']['registered']}/{n_photos}", "rung": stamp.get("rung"),
             "support": stamp.get("support")}
@@ -574,10 +574,15 @@ def hand_mask(folder: Path, stem: str, shape: tuple[int, int]) -> np.ndarray:
 
 def hand_mask_iou(full: Path, hand: Path) -> float:
     """Mean IoU of a workspace's automatic masks against hand masks of the original photos (``hand``, named like
-    them), brought to the training images (:func:`undistorted_hand_masks`, then their size)."""
+    them), brought to the training images (:func:`undistorted_hand_masks`, then :func:`masks_iou`)."""
+    return masks_iou(full, undistorted_hand_masks(full, hand))
+
+
+def masks_iou(full: Path, folder: Path) -> float:
+    """Mean IoU of a workspace's automatic masks against the hand masks in ``folder`` (:func:`undistorted_hand_masks`),
+    each at its mask's size."""
     import cv2
 
-    folder = undistorted_hand_masks(full, hand)
     ious = []
     for p in sorted((full / "masks").glob("*.png")):
         auto = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 127
