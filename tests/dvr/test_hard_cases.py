@@ -205,6 +205,46 @@ def test_nonfinite_step_is_skipped(small_ws, tmp_path, monkeypatch):
     assert not torch.isfinite(tr.model.base).all()
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_one_nonfinite_gradient_element_skips_the_step(small_ws, tmp_path, bad):
+    """A finite loss whose gradient holds one NaN or Inf (in one cell of the grid) never reaches the parameters;
+    without the check Adam writes it into the grid."""
+    tr = Trainer(tiny_cfg(), _train_data(small_ws), tmp_path)
+    before = copy.deepcopy(tr.model.state_dict())
+
+    def poison(grad):
+        grad = grad.clone()
+        grad.view(-1)[7] = bad
+        return grad
+
+    handle = tr.model.base.register_hook(poison)
+    tr.train_step(0)
+    assert tr.skipped == 1
+    for k, v in tr.model.state_dict().items():
+        assert torch.equal(v, before[k]), k
+    tr.opt.zero_grad()
+    total, _ = tr.losses(0)
+    assert torch.isfinite(total)
+    total.backward()
+    handle.remove()
+    tr.opt.step()
+    assert not torch.isfinite(tr.model.base).all()
+
+
+def test_all_finite_sees_one_element_of_any_tensor():
+    from dvr.trainer import all_finite
+
+    ts = [torch.zeros(()), torch.ones(5, 4), torch.full((3, 3, 3), 1e30)]
+    assert bool(all_finite(ts)) and bool(all_finite([]))
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        for i in range(len(ts)):
+            poisoned = [t.clone() for t in ts]
+            poisoned[i].view(-1)[-1] = bad
+            assert not bool(all_finite(poisoned)), (bad, i)
+    opposite = [torch.tensor([float("inf")]), torch.tensor([-float("inf")])]
+    assert not bool(all_finite(opposite))
+
+
 def test_weights_dataclass_has_every_term():
     w = LossWeights()
     assert {"rgb", "freespace", "occupancy", "depth", "carve", "tv", "normal"} <= set(vars(w))
