@@ -7,13 +7,26 @@ import re
 from pathlib import Path
 
 # The versions of the pipeline's defaults a reconstruction row can have trained with (run.py stamps each row it runs
-# with the latest; a row without a stamp is version 1), each with the default it adds; rows of an older version are
+# with the latest; a row without a stamp is version 1), each with the default it adds and the presets it changes
+# (None: every preset; a preset that sets those options itself keeps its rows); rows a later version changes are
 # marked † in the table and in the findings until they are run again.
-DEFAULTS_CHANGES = {2: "`train.carve_min_views` 2, the hull and its carving term need two masks",
-                    3: "`train.carve_sparse_views` 5, one mask carves where fewer than 5 views see a point"}
+DEFAULTS_CHANGES: dict[int, tuple[str, tuple[str, ...] | None]] = {
+    2: ("`train.carve_min_views` 2, the hull and its carving term need two masks", None),
+    3: ("`train.carve_sparse_views` 5, one mask carves where fewer than 5 views see a point", None),
+    4: ("`train.iterations` 1000 at twice the learning rates, `train.lr_grid` 0.04 and `train.lr_mlp` 0.004",
+        ("default", "fast")),
+}
 DEFAULTS_VERSION = max(DEFAULTS_CHANGES)
 STALE_NOTE = (f"† trained with older defaults, before version {DEFAULTS_VERSION} "
-              f"({DEFAULTS_CHANGES[DEFAULTS_VERSION]}); not comparable with rows without †, to be run again.")
+              f"({DEFAULTS_CHANGES[DEFAULTS_VERSION][0]}); not comparable with rows without †, to be run again.")
+
+
+def is_stale(r: dict) -> bool:
+    """True when a later version of the defaults than the one row ``r`` trained with changes its preset."""
+    version, preset = r.get("defaults", 1), r.get("preset", "default")
+    return any(version < v and (presets is None or preset in presets)
+               for v, (_, presets) in DEFAULTS_CHANGES.items())
+
 
 COLORS = {"cow": "tab:orange", "jar": "tab:green", "book": "tab:purple", "cow_float": "tab:blue", "dtu": "tab:red"}
 
@@ -37,8 +50,8 @@ def label(r: dict) -> str:
 
 
 def stale(*rows: dict) -> str:
-    """" †" when any of ``rows`` trained with defaults older than :data:`DEFAULTS_VERSION`, else ""."""
-    return " †" if any(r.get("defaults", 1) < DEFAULTS_VERSION for r in rows) else ""
+    """" †" when a later version of the defaults changes any of ``rows`` (:func:`is_stale`), else ""."""
+    return " †" if any(is_stale(r) for r in rows) else ""
 
 
 def reconstructions(results: list[dict]) -> list[dict]:

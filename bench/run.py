@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.evaluate import REAL, RUNS, fresh_folder, run_cameras, run_dtu, run_real, run_synthetic  # noqa: E402
-from bench.report import DEFAULTS_VERSION, write  # noqa: E402
+from bench.report import DEFAULTS_VERSION, is_stale, write  # noqa: E402
 
 FLOOR_SCENES = ("cow", "jar", "book")
 # knob sweep around the default preset (cow, GT cameras): name → (CLI overrides, scene overrides)
@@ -189,9 +189,9 @@ def one(spec: dict, work: Path) -> dict:
         r = run_dtu(spec, work, ABLATIONS)
     elif spec["scene"] in REAL:
         r = run_real(spec, work)
-        r["machine"] = machine()  # real rows are run on their own: they say where
     else:
         r = run_synthetic(spec, work, {**KNOBS, **ABLATIONS})
+    r["machine"] = machine()  # rows merged into an earlier run's JSON say where they ran
     r["total_s"] = round(sum(r["seconds"].values()), 2)
     if spec.get("kind") != "cameras":
         r["defaults"] = DEFAULTS_VERSION
@@ -289,10 +289,10 @@ def kept(spec: dict, photos: bool = False, plain: bool = False, trained: bool = 
 
 
 def stale_specs(specs: list[dict], path: Path) -> list[dict]:
-    """The ``specs`` whose training row in the results JSON ``path`` ran with defaults older than
-    :data:`bench.report.DEFAULTS_VERSION` (the rows its tables mark †)."""
+    """The ``specs`` whose training row in the results JSON ``path`` a later version of the defaults changes
+    (:func:`bench.report.is_stale`: the rows its tables mark †)."""
     old = {spec_key(r) for r in json.loads(path.read_text())["results"]
-           if r.get("kind") != "cameras" and r.get("defaults", 1) < DEFAULTS_VERSION}
+           if r.get("kind") != "cameras" and is_stale(r)}
     return [s for s in specs if spec_key(s) in old]
 
 

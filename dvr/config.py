@@ -62,7 +62,7 @@ class LossWeights:
 class TrainConfig:
     """Training of the DVR occupancy and texture fields (stage train)."""
 
-    iterations: PositiveInt = 1500
+    iterations: PositiveInt = 1000
     """Optimisation steps."""
     batch_rays: PositiveInt = 2048
     """Pixels (rays) per step."""
@@ -82,9 +82,9 @@ class TrainConfig:
     """Jitter the marching samples while training."""
     cuda_graphs: bool = True
     """On a GPU, replay each step's surface finding as a CUDA graph (faster, same result); no effect on CPU."""
-    lr_grid: float = 0.02
+    lr_grid: float = 0.04
     """Adam learning rate of the grids and planes."""
-    lr_mlp: float = 0.002
+    lr_mlp: float = 0.004
     """Adam learning rate of the MLP heads."""
     lr_appearance: float = 0.01
     """Learning rate of the per-view colour gains (appearance)."""

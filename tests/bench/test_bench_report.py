@@ -56,3 +56,18 @@ def test_real_captures_table_gives_each_stages_seconds_and_where_it_ran():
     failed = {"scene": "blowtorch", "cameras": "sfm", "preset": "default",
               "error": "pipeline.errors.StageError: only 19/67 photos registered (missing: …)"}
     assert "| 19/67: stopped, too few posed |" in real_table([failed]).splitlines()[2]
+
+
+def test_a_change_of_some_presets_leaves_the_others_rows_current(monkeypatch):
+    import bench.report as report
+
+    monkeypatch.setattr(report, "DEFAULTS_CHANGES", {2: ("every preset", None), 3: ("a schedule", ("default", "fast"))})
+
+    def row(preset, version):
+        return {**_row(defaults=version), "preset": preset}
+
+    assert report.is_stale(row("default", 2)) and report.is_stale(row("fast", 2))
+    assert not report.is_stale(row("balanced", 2))  # version 3 leaves balanced as it was
+    assert report.is_stale(row("balanced", 1))  # version 2 changed every preset
+    assert not any(report.is_stale(row(p, 3)) for p in ("default", "fast", "balanced"))
+    assert report.stale(row("balanced", 2)) == "" and report.stale(row("balanced", 2), row("fast", 2)) == " †"

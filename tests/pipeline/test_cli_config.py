@@ -43,7 +43,7 @@ def test_help_from_docstrings():
     for name in [n for n in USER_OPTIONS if not n.startswith("batch.")]:
         section, leaf = name.split(".")
         assert f"--{section}." in short and leaf.replace("_", "-") in short, name
-    assert "--train.iterations INT" in short and "(now: 800)" in short  # the fast preset's value
+    assert "--train.iterations INT" in short and "(now: 500)" in short  # the fast preset's value
     assert "--images PATH" in short and "--mesh.frame {sfm,normalized}" in short
     assert "--masks.hull-res" not in short and "--masks.hull-res" in _help("reconstruct", "--help-all")
     assert "--batch.address" in _help("batch", "--help")
