@@ -572,12 +572,6 @@ def hand_mask(folder: Path, stem: str, shape: tuple[int, int]) -> np.ndarray:
     return cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_AREA) > 127
 
 
-def hand_mask_iou(full: Path, hand: Path) -> float:
-    """Mean IoU of a workspace's automatic masks against hand masks of the original photos (``hand``, named like
-    them), brought to the training images (:func:`undistorted_hand_masks`, then :func:`masks_iou`)."""
-    return masks_iou(full, undistorted_hand_masks(full, hand))
-
-
 def masks_iou(full: Path, folder: Path) -> float:
     """Mean IoU of a workspace's automatic masks against the hand masks in ``folder`` (:func:`undistorted_hand_masks`),
     each at its mask's size."""
