@@ -183,7 +183,7 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
             break
     source = None if best is None else made_by.get(best.database, best.rung)  # a merged model: its matches' rung
     if best is not None and cfg.global_mapper and source.mapper == "incremental" and \
-            best.registered < cfg.enough_registered * len(names):  # the ladder is over and the model lacks photos
+            matched_but_left_out(best.model, best.database):  # the ladder is over; the model lacks posable photos
         again = _global_on_same_matches(work, inp, groups, source, cfg, names, budget, tried)
         if again is not None:
             best = _better(best, *again)
@@ -270,6 +270,14 @@ def _global_on_same_matches(work: Path, inp: Path, groups: list[list[str]], rung
     judged = _judge(rec, again.name, time.perf_counter() - t0, steps, err, inp, names, cfg, None, tried,
                     incremental_models(work / rung.name / "models"))
     return None if judged is None else (judged[0], rec, again, database)
+
+
+def matched_but_left_out(rec, database: Path) -> list[str]:
+    """The photos (file names as SfM saw them) the model ``rec`` did not register that share verified matches with
+    some photo in its ``database``: another mapper may pose them; a photo matching nothing cannot be."""
+    registered = {rec.image(i).name for i in rec.reg_image_ids()}
+    return sorted(n for n, (_, total) in verified_matches(database, registered).items()
+                  if total > 0 and n not in registered)
 
 
 def incremental_models(folder: Path) -> list:

@@ -381,7 +381,7 @@ def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, R
     """Sparse points of photos whose cameras are given (``images/<name>.png``; intrinsics for those pixels, world →
     camera poses): the default rung's SIFT features and matches, then COLMAP's point triangulator at the given
     poses (no mapping, no pose refinement). Returns the model; its database is ``work/given.db``."""
-    from pipeline.colmaplib import pycolmap
+    from pipeline.colmaplib import pycolmap, quiet
 
     work.mkdir(parents=True, exist_ok=True)
     db = work / "given.db"
@@ -406,7 +406,8 @@ def triangulate_at(work: Path, images: Path, names: list[str], Ks: np.ndarray, R
     out = work / "model"
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir()
-    return pycolmap.triangulate_points(rec, db, images, out)
+    with quiet():
+        return pycolmap.triangulate_points(rec, db, images, out)
 
 
 # ----------------------------------------------------------------------------- final adjustment
@@ -455,15 +456,16 @@ def retriangulate(rec, database: Path, images: Path, work: Path, seed: int = 0, 
     above the error threshold to fit the poses, and with them a quarter to half of the sparse depths on the object
     (the cow keeps 110 of 212, the book 5879 of 7768), which the depth loss needs; at the adjusted poses most of those
     observations fit again. Returns (model, note)."""
-    from pipeline.colmaplib import pycolmap
+    from pipeline.colmaplib import pycolmap, quiet
 
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     n0 = rec.compute_num_observations()
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed, opts.num_threads = seed, threads
-    out = pycolmap.triangulate_points(pycolmap.Reconstruction(rec), database, images, work, clear_points=True,
-                                      options=opts)
+    with quiet():  # after a bundle adjustment COLMAP logs at info level: its triangulator's lines would show
+        out = pycolmap.triangulate_points(pycolmap.Reconstruction(rec), database, images, work, clear_points=True,
+                                          options=opts)
     return out, (f"points re-triangulated at the adjusted poses: {out.compute_num_observations()} observations "
                  f"(the passes kept {n0})")
 

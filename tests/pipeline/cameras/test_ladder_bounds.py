@@ -14,7 +14,7 @@ from dvr.data import list_images
 from dvr.metrics import pose_errors
 from pipeline.cameras.config import CamerasConfig
 from pipeline.cameras.export import left_out
-from pipeline.cameras.mapping import _judge, _upsampled_when_weak
+from pipeline.cameras.mapping import _judge, _upsampled_when_weak, matched_but_left_out
 from pipeline.cameras.sfm import (
     GUIDED_COST,
     LADDER,
@@ -24,6 +24,8 @@ from pipeline.cameras.sfm import (
     ladder,
     median_features,
     number_by_name,
+    refine_model,
+    retriangulate,
     rung_seconds,
     shortfalls,
 )
@@ -128,11 +130,13 @@ def test_a_rungs_cost_is_estimated_from_the_last_one():
 def test_a_rung_that_would_not_finish_is_not_started(tmp_path, capsys, monkeypatch):
     """The 12 photos 30° apart again, with the time budget as it is: the first rung poses a few; every later rung
     estimated to take longer than the budget has left is not started (said, and in the stamp); merging, which makes
-    no features, runs; and, as no model is enough (``enough-registered`` above 1), the global mapper maps the first
-    rung's matches, those the merged model came from."""
+    no features, runs; and, with no model enough (``enough-registered`` above 1) and a photo said to be left out
+    with matches (the merged model poses all 12 here), the global mapper maps the first rung's matches, those the
+    merged model came from."""
     import pipeline.cameras.mapping as mapping
 
     monkeypatch.setattr(mapping, "rung_seconds", lambda done, steps, nxt: 0.0 if nxt.mapper == "extend" else 1e6)
+    monkeypatch.setattr(mapping, "matched_but_left_out", lambda rec, database: ["a photo with matches"])
     images = _torus_photos(tmp_path, 12)
     ws = tmp_path / "ws"
     assert main(["cameras", str(ws), "--images", str(images), "--cameras.no-board",
@@ -192,6 +196,47 @@ def test_the_global_mapper_poses_what_the_incremental_one_left_out(tmp_path, cap
     assert judged is None and "6 rotations disagree with the incremental mapper's by over 5°" in capsys.readouterr().out
     judged = _judge(mapped, "default-global", 1.0, {}, None, ws / "sfm" / "input", names, cfg, None, [], [mapped])
     assert judged is not None and judged[0]["registered"] == 12
+
+
+def test_the_global_mapper_runs_for_photos_left_out_of_a_model_enough_to_stop(tmp_path, capfd):
+    """The same 12 photos, the ladder one rung long and any share of the photos enough (``enough-registered``
+    0.1): the first rung poses a few, and the others match them; the global mapper on the same matches poses all 12
+    (the floating cow: 39/40 and 0.15° rotation error from the first rung, 40/40 and 0.04° so)."""
+    images = _torus_photos(tmp_path, 12)
+    ws = tmp_path / "ws"
+    assert main(["cameras", str(ws), "--images", str(images), "--cameras.enough-registered", "0.1",
+                 "--cameras.last-rung", "default", "--cameras.no-board"]) == 0
+    stamp = json.loads((ws / ".stages" / "cameras.json").read_text())
+    assert [r["rung"] for r in stamp["rungs"]] == ["default", "default-global"], stamp["rungs"]
+    assert stamp["rungs"][0]["registered"] < 12 and stamp["registered"] == 12
+
+    capfd.readouterr()  # the final adjustment's passes and re-triangulation keep COLMAP's info lines off the terminal
+    rec, _ = refine_model(pycolmap.Reconstruction(ws / "sfm" / "sparse" / "best"), 1, 2.5)
+    again, note = retriangulate(rec, ws / "sfm" / "database.db", ws / "sfm" / "input", tmp_path / "tri")
+    out, err = capfd.readouterr()
+    assert again.num_points3D() > 0 and "incremental_pipeline" not in out + err and "Triangulat" not in out + err
+
+
+def test_only_photos_with_matches_count_as_left_out_for_another_mapper(tmp_path):
+    """matched_but_left_out: of the photos a model lacks, those sharing verified matches with some photo."""
+    db = tmp_path / "m.db"
+    with sqlite3.connect(db) as con:
+        con.execute("create table images (image_id integer, name text)")
+        con.execute("create table two_view_geometries (pair_id integer, rows integer)")
+        con.executemany("insert into images values (?, ?)", [(1, "a.png"), (2, "b.png"), (3, "c.png"),
+                                                              (4, "d.png"), (5, "e.png")])
+        pair = 2147483647  # COLMAP's pair id: image_id1 * this + image_id2
+        con.executemany("insert into two_view_geometries values (?, ?)",
+                        [(1 * pair + 2, 100), (2 * pair + 3, 40), (4 * pair + 5, 0)])
+
+    class Model:  # the part of a pycolmap.Reconstruction it reads: a and b posed
+        def reg_image_ids(self):
+            return [1, 2]
+
+        def image(self, i):
+            return type("Image", (), {"name": {1: "a.png", 2: "b.png"}[i]})
+
+    assert matched_but_left_out(Model(), db) == ["c.png"]  # d and e matched nothing that verified
 
 
 def test_photos_are_numbered_by_name_whatever_order_extraction_finished(tmp_path):
