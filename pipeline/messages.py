@@ -1,4 +1,4 @@
-"""Short lists in messages: a person reads five names, not fifty."""
+"""Messages a person reads: short lists (five names, not fifty), an object's size."""
 
 from __future__ import annotations
 
@@ -17,3 +17,13 @@ def names_or_count(names: Iterable[str], noun: str = "photos", look: Path | str 
         return ", ".join(names)
     first = ", ".join(names[:3])
     return f"{len(names)} {noun} ({first}, …{f'; see {look}' if look else ''})"
+
+
+def size_in_words(size: dict, metric: bool) -> str:
+    """The object's size for a person: millimetres (height × width × depth) when the mesh is in metres (``metric``:
+    a printed board set the scale), else that its scale is arbitrary."""
+    if not metric:
+        return ("the scale is arbitrary (no printed board was seen: docs/capture.md shows how one gives the mesh its "
+                "size in metres)")
+    return (f"{1000 * size['height']:.0f} × {1000 * size['width']:.0f} × {1000 * size['depth']:.0f} mm "
+            "(height × width × depth, from the printed board)")

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from dvr.atomic import atomic_file, write_image, write_text
+from pipeline.messages import size_in_words
 from pipeline.workspace import Done, Job, Workspace
 
 VIEWER_JS = Path(__file__).resolve().parents[2] / "node_modules" / "@google" / "model-viewer" / "dist" / \
@@ -260,6 +261,15 @@ def stage_row(stage: str, seconds: float, record: dict) -> str:
             f"<details><summary>raw</summary><code>{html.escape(json.dumps(record))}</code></details></td></tr>")
 
 
+def size_paragraph(texture_stamp: dict) -> str:
+    """The object's size as the texture stage measured it (millimetres with a printed board, else that the scale is
+    arbitrary); empty for a stamp without it."""
+    size = texture_stamp.get("size")
+    if not size:
+        return ""
+    return f"<p>Size: {html.escape(size_in_words(size, size.get('units') == 'metres'))}.</p>"
+
+
 def build(ws: Workspace, stage_order: tuple[str, ...], stats: dict | None = None) -> str:
     """The self-contained HTML of the report: stage table (its rows in ``stage_order``), capture, masks, training
     curves, renders, viewer. ``stats`` (when given) receives the mean PSNR of the renders: ``psnr`` and ``psnr_views``
@@ -286,6 +296,7 @@ def build(ws: Workspace, stage_order: tuple[str, ...], stats: dict | None = None
     glb = ws.mesh / "textured.glb"
     if glb.exists():
         parts.append("<h2>Mesh</h2>")
+        parts.append(size_paragraph(stamps.get("texture") or {}))
         if VIEWER_JS.exists():
             js, src = inlined_viewer(glb)
             parts.append(f'<script type="module">{js}</script>'

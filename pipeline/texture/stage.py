@@ -28,6 +28,7 @@ from dvr.data import list_images
 from dvr.device import resolve_device
 from dvr.fields import Field, evaluate_in_chunks
 from pipeline.errors import StageError
+from pipeline.messages import size_in_words
 from pipeline.readers import load_mesh_file, read_model
 from pipeline.render.raycast import MeshCaster
 from pipeline.texture.appearance import photos_for_bake
@@ -174,6 +175,13 @@ def upright(cams: Cameras, frame: str) -> tuple[np.ndarray, str]:
     return T, source
 
 
+def object_size(verts: np.ndarray, display: np.ndarray) -> dict:
+    """The box of the mesh ``verts`` in the GLB's display frame (``display``: :func:`upright`; +Y up, +Z towards the
+    first photo's camera), in the mesh's units: ``height`` (along Y), ``width`` (X), ``depth`` (Z)."""
+    ext = np.ptp(transform_points(display, np.asarray(verts, np.float64)), axis=0)
+    return {"height": float(ext[1]), "width": float(ext[0]), "depth": float(ext[2])}
+
+
 def read_clean_mesh(path: Path) -> trimesh.Trimesh:
     """The mesh stage's ``clean.ply`` (StageError naming it: unreadable, no triangles, empty)."""
     m = load_mesh_file(path, "ply", "mesh", "rerun the mesh stage (mesh --force)")
@@ -211,6 +219,8 @@ def run(job: Job) -> Done:
     export_textured(ws.mesh, out_v, nf, uvs, tex, display)
     stats.pop("filled")
     stats["glb_up"] = {"from": up_from, "node_matrix": np.round(display, 9).tolist()}
+    metric = cfg.frame == "sfm" and bool((ws.stamp("cameras") or {}).get("board"))  # a board: the SfM frame in metres
+    stats["size"] = {**object_size(out_v, display), "units": "metres" if metric else "arbitrary"}
     print(f"texture: {tex.shape[0]}² atlas, {100 * (1 - stats['unseen_frac']):.1f} % of texels from photos → "
-          f"{ws.mesh / 'textured.glb'}")
+          f"{ws.mesh / 'textured.glb'}; {size_in_words(stats['size'], metric)}")
     return Done(stats)

@@ -1,6 +1,6 @@
 """The report's words for the cameras stage (pipeline/report/stage.py)."""
 
-from pipeline.report.stage import capture_section
+from pipeline.report.stage import capture_section, size_paragraph
 from pipeline.workspace import Workspace
 
 
@@ -18,3 +18,13 @@ def test_the_ladder_in_words_with_rungs_not_tried_and_a_global_model(tmp_path):
     assert "default-global: 55 registered in 33.9 s, 2 views with wrong poses dropped" in html
     assert "guided: not tried (time budget spent)" in html and "global: 40 registered in 20.0 s, rejected" in html
     assert "kept <b>default-global</b>" in html
+
+
+def test_the_objects_size_in_millimetres_with_a_board_else_the_scale_is_arbitrary():
+    """The texture stage's measured box: in mm when a printed board put the mesh in metres; without one, no number."""
+    metric = {"size": {"height": 0.1234, "width": 0.0806, "depth": 0.05, "units": "metres"}}
+    assert "Size: 123 × 81 × 50 mm (height × width × depth, from the printed board)." in size_paragraph(metric)
+    arbitrary = {"size": {"height": 1.7, "width": 0.9, "depth": 0.8, "units": "arbitrary"}}
+    text = size_paragraph(arbitrary)
+    assert "the scale is arbitrary" in text and "mm" not in text and "1.7" not in text
+    assert size_paragraph({}) == ""

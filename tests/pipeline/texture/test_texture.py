@@ -24,7 +24,7 @@ from pipeline.texture.blend import (
 )
 from pipeline.texture.config import TextureConfig
 from pipeline.texture.export import export_textured, read_textured
-from pipeline.texture.stage import depth_maps, fill_unseen, texture_mesh, upright
+from pipeline.texture.stage import depth_maps, fill_unseen, object_size, texture_mesh, upright
 from synth import scene_from_dict, write_scene
 from synth.render import MeshShape
 from tests.conftest import ROOT, SHARED
@@ -256,6 +256,16 @@ def test_upright_puts_the_glb_up_along_gltf_y(grounded):
     points = np.random.default_rng(0).normal(size=(5, 3))
     np.testing.assert_allclose(trimesh.transform_points(to_sfm(points, cams.scale_mat), T_sfm),
                                4.0 * trimesh.transform_points(points, T), atol=1e-9)
+
+
+def test_object_size_is_measured_upright():
+    """object_size: the box of the mesh in the GLB's display frame, so height is along its up whatever the SfM frame
+    (a box 0.1 × 0.3 × 0.2 along SfM x, y, z, shown with SfM z up: 0.2 high)."""
+    box = trimesh.creation.box((0.1, 0.3, 0.2))
+    z_up = np.eye(4)
+    z_up[:3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]  # display y = SfM z, display z = −SfM y
+    size = object_size(np.asarray(box.vertices) + 5.0, z_up)
+    assert np.allclose([size["height"], size["width"], size["depth"]], [0.2, 0.1, 0.3])
 
 
 def test_upright_of_an_object_on_a_wall_keeps_the_cameras_up():
