@@ -490,7 +490,7 @@ def verify_again(database: Path, out: Path, max_h_inlier_ratio: float, seed: int
     again. :func:`verify_at_poses` needs no RANSAC (``cameras.object_verification``). Each pair's RANSAC is seeded
     on its own, so every number of ``threads`` gives the same database (the 3× cow's 762 pairs, 1 and 2 threads:
     identical; 134 s against 67)."""
-    from pipeline.colmaplib import pycolmap
+    from pipeline.colmaplib import pycolmap, quiet
 
     copy_unverified(database, out)
     geometry = pycolmap.TwoViewGeometryOptions()
@@ -498,7 +498,8 @@ def verify_again(database: Path, out: Path, max_h_inlier_ratio: float, seed: int
     geometry.max_H_inlier_ratio = max_h_inlier_ratio
     verifier = pycolmap.GeometricVerifierOptions()
     verifier.num_threads = threads
-    pycolmap.geometric_verification(out, verifier_options=verifier, two_view_geometry_options=geometry)
+    with quiet():  # after a bundle adjustment COLMAP logs at info level: the verification's lines would show
+        pycolmap.geometric_verification(out, verifier_options=verifier, two_view_geometry_options=geometry)
 
 
 def verify_at_poses(rec, database: Path, out: Path, threads: int = -1) -> None:
@@ -506,10 +507,11 @@ def verify_at_poses(rec, database: Path, out: Path, threads: int = -1) -> None:
     ``rec`` (COLMAP's guided geometric verifier, as hloc triangulates from known poses): each pair keeps the matches
     within COLMAP's epipolar error of its known relative pose, however many lie on one plane. No RANSAC: 0.2 s for
     the 190 pairs of 20 photos of 960 × 720 (309 object matches; :func:`verify_again` 33 s, 240)."""
-    from pipeline.colmaplib import pycolmap
+    from pipeline.colmaplib import pycolmap, quiet
 
     copy_unverified(database, out)
-    pycolmap.guided_geometric_verification(rec, out, num_threads=threads)
+    with quiet():
+        pycolmap.guided_geometric_verification(rec, out, num_threads=threads)
 
 
 # ----------------------------------------------------------------------------- judging a model
