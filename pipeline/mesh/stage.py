@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 import trimesh
@@ -13,6 +15,7 @@ from dvr.extract import extract_mesh
 from dvr.fields import evaluate_in_chunks
 from pipeline.errors import StageError
 from pipeline.mesh.config import MeshConfig
+from pipeline.mesh.levels import budget, level_folder, parse_levels
 from pipeline.mesh.visibility import (
     boundary_loops,
     seen_part,
@@ -164,6 +167,7 @@ def run(job: Job) -> Done:
     """Stage ``mesh`` (called by :func:`pipeline.stages.run_stage`): the trained occupancy's isosurface →
     mesh/raw.ply; cleaned, decimated and coloured by the texture field → mesh/clean.ply."""
     ws, cfg = job.ws, job.cfg
+    parse_levels(cfg.detail)  # a misspelt level stops here, not after the extraction
     final = ws.model / "final.pt"
     raw, clean = ws.mesh / "raw.ply", ws.mesh / "clean.ply"
     dev = resolve_device(cfg.device)
@@ -187,13 +191,44 @@ def run(job: Job) -> Done:
         if len(cf) == 0:
             raise StageError(f"{ws.cameras}: no photo sees the mesh; check the cameras, or mesh without "
                              f"--mesh.drop-unseen")
-    with torch.no_grad():
-        pts = torch.from_numpy(cv).float().to(dev)
-        cc = evaluate_in_chunks(field.texture, pts, 65536, trailing_shape=(3,))
-    _export(clean, cv, cf, (cc.clamp(0, 1) * 255).round().byte().cpu().numpy(), scale_mat, to_norm, cfg.frame)
+    _export(clean, cv, cf, vertex_colours(field, cv, dev), scale_mat, to_norm, cfg.frame)
     units = mesh_units(ws.root, cfg.frame)  # {} unless a printed board put cameras.npz in metres
     print(f"mesh: {len(f)} raw faces, {len(cf)} clean faces{' (metres)' if units else ''} → {clean}")
+    levels = write_levels(ws, v, f, cfg, field, dev, scale_mat, to_norm)
     return Done({"raw_faces": int(len(f)), "clean_faces": int(len(cf)), "unseen_faces": unseen, "frame": cfg.frame,
                  **({"open_loops": loops, "open_length": round(length, 3)} if cfg.drop_unseen else {}),
-                 "floaters": dropped,
+                 "floaters": dropped, **({"levels": levels} if levels else {}),
                  **units})
+
+
+def vertex_colours(field, verts: np.ndarray, dev) -> np.ndarray:
+    """(N, 3) uint8: the texture field's colour at each vertex (normalized frame)."""
+    with torch.no_grad():
+        pts = torch.from_numpy(verts).float().to(dev)
+        cc = evaluate_in_chunks(field.texture, pts, 65536, trailing_shape=(3,))
+    return (cc.clamp(0, 1) * 255).round().byte().cpu().numpy()
+
+
+def write_levels(ws, verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig, field, dev, scale_mat: np.ndarray,
+                 to_norm: np.ndarray) -> dict:
+    """The detail levels of ``cfg.detail`` (:mod:`pipeline.mesh.levels`): the raw mesh ``verts``, ``faces`` cleaned as
+    the clean mesh is, with the level's face budget, → ``mesh/levels/<level>/clean.ply``. Returns the faces of each
+    level. Levels not asked for are removed (a stale one would be textured and shown as current)."""
+    import shutil
+
+    asked = parse_levels(cfg.detail)
+    for old in sorted((ws.mesh / "levels").glob("*")) if (ws.mesh / "levels").is_dir() else []:
+        if old.name not in asked:
+            shutil.rmtree(old, ignore_errors=True)
+    points = sfm_points(ws.root / "points.ply", scale_mat)
+    out = {}
+    for level in asked:
+        lv, lf, _ = clean_mesh(verts, faces, replace(cfg, max_faces=budget(level)), points)
+        if cfg.drop_unseen:
+            lv, lf, _ = _drop_unseen(ws, lv, lf, scale_mat, cfg)
+        folder = level_folder(ws.mesh, level)
+        folder.mkdir(parents=True, exist_ok=True)
+        _export(folder / "clean.ply", lv, lf, vertex_colours(field, lv, dev), scale_mat, to_norm, cfg.frame)
+        print(f"mesh: detail level {level}: {len(lf)} faces → {folder / 'clean.ply'}")
+        out[level] = int(len(lf))
+    return out

@@ -264,10 +264,25 @@ def stage_row(stage: str, seconds: float, record: dict) -> str:
 def size_paragraph(texture_stamp: dict) -> str:
     """The object's size as the texture stage measured it (millimetres with a printed board, else that the scale is
     arbitrary); empty for a stamp without it."""
-    size = texture_stamp.get("size")
+    size = texture_stamp.get("object_size")
     if not size:
         return ""
     return f"<p>Size: {html.escape(size_in_words(size, size.get('units') == 'metres'))}.</p>"
+
+
+def levels_paragraph(texture_stamp: dict) -> str:
+    """The detail levels the texture stage wrote besides the default mesh: faces and GLB size of each, and where it
+    is; empty without levels."""
+    levels = texture_stamp.get("levels") or {}
+    if not levels:
+        return ""
+    rows = "".join(f"<tr><td>{html.escape(name)}</td><td>{lv['faces']}</td><td>{lv['glb_bytes'] / 1e6:.1f} MB</td>"
+                   f"<td>mesh/levels/{html.escape(name)}/textured.glb</td></tr>" for name, lv in levels.items())
+    main = f"<tr><td>default</td><td>{texture_stamp.get('faces', '–')}</td><td>" + (
+        f"{texture_stamp['glb_bytes'] / 1e6:.1f} MB" if "glb_bytes" in texture_stamp else "–") + \
+        "</td><td>mesh/textured.glb (in the viewer above)</td></tr>"
+    return ("<h3>Detail levels</h3><table><tr><th>level</th><th>faces</th><th>GLB</th><th>file</th></tr>"
+            f"{main}{rows}</table>")
 
 
 def build(ws: Workspace, stage_order: tuple[str, ...], stats: dict | None = None) -> str:
@@ -305,6 +320,7 @@ def build(ws: Workspace, stage_order: tuple[str, ...], stats: dict | None = None
         else:
             parts.append("<p>(interactive viewer: run <code>make setup-web</code> to install model-viewer, then "
                          "rerun the report stage)</p>")
+        parts.append(levels_paragraph(stamps.get("texture") or {}))
     ren = renders(ws, out_dir=rep)
     if stats is not None and ren:  # the mean PSNR of the held-out views when there are any, else the photos'
         tag_of = "held-out" if ren[0][0].startswith("held-out") else "view"

@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import json
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from dvr.data import list_images
 from dvr.device import resolve_device
 from dvr.fields import Field, evaluate_in_chunks
 from pipeline.errors import StageError
+from pipeline.mesh.levels import level_folder
 from pipeline.messages import size_in_words
 from pipeline.readers import load_mesh_file, read_model
 from pipeline.render.raycast import MeshCaster
@@ -194,33 +194,44 @@ def read_clean_mesh(path: Path) -> trimesh.Trimesh:
 
 def run(job: Job) -> Done:
     """Stage ``texture`` (called by :func:`pipeline.stages.run_stage`): the clean mesh UV-unwrapped and baked from
-    the photos (the texture field for texels no photo sees) → mesh/textured.obj/.mtl/.png and mesh/textured.glb."""
+    the photos (the texture field for texels no photo sees) → mesh/textured.obj/.mtl/.png and mesh/textured.glb;
+    likewise each detail level the mesh stage wrote (``mesh/levels/<level>/``)."""
     ws, cfg = job.ws, job.cfg
-    clean = ws.mesh / "clean.ply"
     final = ws.model / "final.pt"
     looks = ws.model / "appearance.json"  # per-view exposure and white balance fitted in training
     paths = list_images(ws.images)
     cams = load_cameras(ws.cameras, n_views=len(paths))
-    S = cams.scale_mat
-    m = read_clean_mesh(clean)
-    try:
-        mesh_frame = json.loads((ws.stages / "mesh.json").read_text()).get("frame", "sfm")
-    except (OSError, ValueError):
-        mesh_frame = "sfm"
-    verts_n = np.asarray(m.vertices, np.float64)
-    if mesh_frame == "sfm":
-        verts_n = to_normalized(verts_n, S)
+    mesh_stamp = ws.stamp("mesh") or {}
     images, field_gain, clipped = photos_for_bake(paths, looks, cfg)
     field, _, field_frame = read_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
-    nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame,
-                                           field_gain, clipped)
-    out_v = to_sfm(nv, S) if cfg.frame == "sfm" else nv
     display, up_from = upright(cams, cfg.frame)
-    export_textured(ws.mesh, out_v, nf, uvs, tex, display)
-    stats.pop("filled")
-    stats["glb_up"] = {"from": up_from, "node_matrix": np.round(display, 9).tolist()}
     metric = cfg.frame == "sfm" and bool((ws.stamp("cameras") or {}).get("board"))  # a board: the SfM frame in metres
-    stats["size"] = {**object_size(out_v, display), "units": "metres" if metric else "arbitrary"}
-    print(f"texture: {tex.shape[0]}² atlas, {100 * (1 - stats['unseen_frac']):.1f} % of texels from photos → "
-          f"{ws.mesh / 'textured.glb'}; {size_in_words(stats['size'], metric)}")
+
+    def bake_to(folder: Path) -> dict:
+        """The clean mesh of ``folder`` textured into that folder; its stats."""
+        m = read_clean_mesh(folder / "clean.ply")
+        verts_n = np.asarray(m.vertices, np.float64)
+        if mesh_stamp.get("frame", "sfm") == "sfm":
+            verts_n = to_normalized(verts_n, cams.scale_mat)
+        nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame,
+                                               field_gain, clipped)
+        out_v = to_sfm(nv, cams.scale_mat) if cfg.frame == "sfm" else nv
+        export_textured(folder, out_v, nf, uvs, tex, display)
+        stats.pop("filled")
+        stats["object_size"] = {**object_size(out_v, display), "units": "metres" if metric else "arbitrary"}
+        stats["glb_bytes"] = (folder / "textured.glb").stat().st_size
+        return stats
+
+    stats = bake_to(ws.mesh)
+    stats["glb_up"] = {"from": up_from, "node_matrix": np.round(display, 9).tolist()}
+    print(f"texture: {stats['size']}² atlas, {100 * (1 - stats['unseen_frac']):.1f} % of texels from photos → "
+          f"{ws.mesh / 'textured.glb'}; {size_in_words(stats['object_size'], metric)}")
+    levels = {}
+    for level in mesh_stamp.get("levels", {}):
+        folder = level_folder(ws.mesh, level)
+        levels[level] = {k: v for k, v in bake_to(folder).items() if k in ("faces", "size", "glb_bytes")}
+        print(f"texture: detail level {level}: {levels[level]['faces']} faces, {levels[level]['size']}² atlas, "
+              f"{levels[level]['glb_bytes'] / 1e6:.1f} MB → {folder / 'textured.glb'}")
+    if levels:
+        stats["levels"] = levels
     return Done(stats)

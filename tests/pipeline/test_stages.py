@@ -146,7 +146,7 @@ def test_reconstruct_a_synthetic_workspace_then_nothing_to_do(small_ws, tmp_path
     assert glb == (ws / "mesh" / "textured.glb").resolve() and glb.exists() and (ws / "report.html").exists()
     done = {p.stem: json.loads(p.read_text())["finished"] for p in (ws / ".stages").glob("*.json")}
     assert set(done) == {"train", "mesh", "texture", "report"}  # no photos: cameras, masks, depth not run
-    size = json.loads((ws / ".stages" / "texture.json").read_text())["size"]  # no board: a size, not in metres
+    size = json.loads((ws / ".stages" / "texture.json").read_text())["object_size"]  # no board: a size, not in metres
     assert size["units"] == "arbitrary" and min(size["height"], size["width"], size["depth"]) > 0
     assert "the scale is arbitrary" in capsys.readouterr().out and "Size: the scale is arbitrary" in \
         (ws / "report.html").read_text()

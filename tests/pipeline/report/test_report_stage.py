@@ -22,9 +22,9 @@ def test_the_ladder_in_words_with_rungs_not_tried_and_a_global_model(tmp_path):
 
 def test_the_objects_size_in_millimetres_with_a_board_else_the_scale_is_arbitrary():
     """The texture stage's measured box: in mm when a printed board put the mesh in metres; without one, no number."""
-    metric = {"size": {"height": 0.1234, "width": 0.0806, "depth": 0.05, "units": "metres"}}
+    metric = {"object_size": {"height": 0.1234, "width": 0.0806, "depth": 0.05, "units": "metres"}}
     assert "Size: 123 × 81 × 50 mm (height × width × depth, from the printed board)." in size_paragraph(metric)
-    arbitrary = {"size": {"height": 1.7, "width": 0.9, "depth": 0.8, "units": "arbitrary"}}
+    arbitrary = {"object_size": {"height": 1.7, "width": 0.9, "depth": 0.8, "units": "arbitrary"}}
     text = size_paragraph(arbitrary)
     assert "the scale is arbitrary" in text and "mm" not in text and "1.7" not in text
     assert size_paragraph({}) == ""

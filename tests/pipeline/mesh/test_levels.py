@@ -1,0 +1,62 @@
+"""Detail levels (pipeline/mesh/levels.py): the names, and several levels written from one training."""
+
+import json
+import shutil
+
+import pytest
+import trimesh
+
+from pipeline.config import Config
+from pipeline.errors import StageError
+from pipeline.mesh.levels import LEVELS, budget, parse_levels
+from pipeline.stages import reconstruct, run_stage
+from pipeline.texture.export import read_textured
+from tests.conftest import tiny_training
+
+
+def test_level_names_in_order_each_once():
+    assert parse_levels("medium, preview,medium") == ["medium", "preview"]
+    assert parse_levels("") == []
+    assert [budget(n) for n in ("preview", "reduced", "medium", "full")] == [25_000, 50_000, 100_000, 250_000]
+    assert budget("raw") > 10**9 and LEVELS["raw"] is None
+
+
+def test_an_unknown_level_is_one_line_naming_the_option_and_the_levels():
+    with pytest.raises(StageError) as e:
+        parse_levels("preview,fine")
+    text = str(e.value)
+    assert "\n" not in text and text.startswith("--mesh.detail: unknown level 'fine'")
+    assert all(name in text for name in LEVELS)
+
+
+def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_path, monkeypatch):
+    """Two levels (preview's budget made small enough to decimate this small mesh) beside the default mesh: each
+    a clean.ply within its budget and a textured GLB, faces and GLB sizes in the stamps and the report; asking for
+    one level afterwards redoes the mesh and texture stages, not the training, and removes the other level."""
+    monkeypatch.setitem(LEVELS, "preview", 1500)
+    ws = tmp_path / "ws"
+    shutil.copytree(small_ws, ws)
+    cfg = tiny_training(Config(), iterations=30, batch_rays=256)
+    cfg.mesh.resolution, cfg.mesh.max_faces, cfg.texture.size = 64, 3000, 128
+    cfg.mesh.detail = "preview,raw"
+    reconstruct(None, ws, cfg)
+    mesh = json.loads((ws / ".stages" / "mesh.json").read_text())
+    texture = json.loads((ws / ".stages" / "texture.json").read_text())
+    assert list(mesh["levels"]) == ["preview", "raw"] and mesh["levels"]["preview"] <= 1500
+    assert mesh["levels"]["raw"] > mesh["clean_faces"] > mesh["levels"]["preview"]
+    for level in ("preview", "raw"):
+        folder = ws / "mesh" / "levels" / level
+        assert len(trimesh.load(folder / "clean.ply").faces) == mesh["levels"][level]
+        glb_mesh, tex = read_textured(folder / "textured.glb")
+        assert texture["levels"][level]["glb_bytes"] == (folder / "textured.glb").stat().st_size > 0
+        assert texture["levels"][level]["faces"] == mesh["levels"][level] and tex.shape[2] == 3
+    report = (ws / "report.html").read_text()
+    assert "Detail levels" in report and "mesh/levels/preview/textured.glb" in report
+
+    trained = (ws / "model" / "final.pt").stat().st_mtime_ns
+    cfg.mesh.detail = "preview"
+    run_stage("mesh", ws, cfg)
+    run_stage("texture", ws, cfg)
+    assert (ws / "model" / "final.pt").stat().st_mtime_ns == trained
+    assert not (ws / "mesh" / "levels" / "raw").exists() and (ws / "mesh" / "levels" / "preview").is_dir()
+    assert list(json.loads((ws / ".stages" / "texture.json").read_text())["levels"]) == ["preview"]
