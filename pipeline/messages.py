@@ -1,10 +1,16 @@
-"""Messages a person reads: short lists (five names, not fifty), an object's size."""
+"""Messages a person reads: short lists (five names, not fifty), an object's size, a progress line while long
+work runs."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import threading
+import time
+from collections.abc import Callable, Iterable
+from contextlib import contextmanager
 from pathlib import Path
 
+PROGRESS_EVERY = 20.0
+"""Seconds between two progress lines of long work."""
 LIST_LIMIT = 5
 """Names a message lists; more become their count and where to look."""
 
@@ -27,3 +33,33 @@ def size_in_words(size: dict, metric: bool) -> str:
                 "size in metres)")
     return (f"{1000 * size['height']:.0f} × {1000 * size['width']:.0f} × {1000 * size['depth']:.0f} mm "
             "(height × width × depth, from the printed board)")
+
+
+def say_now(line: str) -> None:
+    """Print a progress line at once (stdout may be a file, block-buffered)."""
+    print(line, flush=True)
+
+
+def minutes(seconds: float) -> str:
+    """``42 s``, ``3 min 05 s``."""
+    s = int(round(seconds))
+    return f"{s} s" if s < 60 else f"{s // 60} min {s % 60:02d} s"
+
+
+@contextmanager
+def heartbeat(what: str, every: float = PROGRESS_EVERY, say: Callable[[str], None] = say_now):
+    """While the block runs, ``say`` ``what`` and the time it has taken every ``every`` seconds (a step that reports
+    nothing itself: a call into COLMAP, a texture's bake; their native code lets this thread run)."""
+    stop, t0 = threading.Event(), time.time()
+
+    def beat() -> None:
+        while not stop.wait(every):
+            say(f"{what} ({minutes(time.time() - t0)})")
+
+    thread = threading.Thread(target=beat, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()

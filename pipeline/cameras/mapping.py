@@ -20,7 +20,6 @@ from pipeline.cameras.export import (
     model_points,
 )
 from pipeline.cameras.pose_sanity import axes_convergence, model_views, pose_sanity, rotation_disagreement
-from pipeline.cameras.progress import heartbeat
 from pipeline.cameras.sfm import (
     RUNG_NAMES,
     Rung,
@@ -41,7 +40,7 @@ from pipeline.inputs.photos import (
     downscale,
     read_photo,
 )
-from pipeline.messages import names_or_count
+from pipeline.messages import heartbeat, names_or_count
 from pipeline.scene.support import find_support
 from pipeline.workspace import Workspace
 

@@ -5,14 +5,11 @@ from __future__ import annotations
 
 import re
 import subprocess
-import threading
 import time
 from collections.abc import Callable
-from contextlib import contextmanager
 from pathlib import Path
 
-PROGRESS_EVERY = 20.0
-"""Seconds between two progress lines of a running rung."""
+from pipeline.messages import PROGRESS_EVERY, minutes, say_now
 
 _STEPS: tuple[tuple[re.Pattern, Callable[[re.Match], str]], ...] = (
     (re.compile(r"Processed file \[(\d+)/(\d+)\]"), lambda m: f"features of {m[1]}/{m[2]} photos"),
@@ -63,17 +60,6 @@ class LogProgress:
         return self.state
 
 
-def say_now(line: str) -> None:
-    """Print a progress line at once (stdout may be a file, block-buffered)."""
-    print(line, flush=True)
-
-
-def minutes(seconds: float) -> str:
-    """``42 s``, ``3 min 05 s``."""
-    s = int(round(seconds))
-    return f"{s} s" if s < 60 else f"{s // 60} min {s % 60:02d} s"
-
-
 def wait_with_progress(p: subprocess.Popen, log: Path, label: str, stop_at: float | None,
                        say: Callable[[str], None] = say_now, every: float = PROGRESS_EVERY) -> bool:
     """Wait for the child ``p`` writing ``log``; every ``every`` seconds ``say`` a line of what it does (``label``:
@@ -94,22 +80,3 @@ def wait_with_progress(p: subprocess.Popen, log: Path, label: str, stop_at: floa
         if now - last >= every:
             say(f"cameras: rung {label}: {watch.update()} ({minutes(now - t0)})")
             last = now
-
-
-@contextmanager
-def heartbeat(what: str, every: float = PROGRESS_EVERY, say: Callable[[str], None] = say_now):
-    """While the block runs, ``say`` ``what`` and the time it has taken every ``every`` seconds (a step inside
-    COLMAP that reports nothing itself; COLMAP's calls let this thread run)."""
-    stop, t0 = threading.Event(), time.time()
-
-    def beat() -> None:
-        while not stop.wait(every):
-            say(f"{what} ({minutes(time.time() - t0)})")
-
-    thread = threading.Thread(target=beat, daemon=True)
-    thread.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        thread.join()

@@ -342,7 +342,7 @@ def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, came
              seed: int = 0, base: tuple[Path, Path] | None = None, threads: int = -1, deadline: float | None = None,
              min_mapping: float | None = None):
     """Run one rung in a child process (``python -m pipeline.cameras.sfm``; COLMAP's log goes to ``work/<rung>.log``,
-    a progress line every :data:`~pipeline.cameras.progress.PROGRESS_EVERY` s); ``base``: (model folder, its
+    a progress line every :data:`~pipeline.messages.PROGRESS_EVERY` s); ``base``: (model folder, its
     database) for the ``extend`` mapper to continue from; ``threads``: the mapper's threads (-1: all cores; 1: the
     same photos give the same model); ``deadline`` (time.time()): the incremental mapper stops there with the photos
     it registered, and a rung still running :data:`KILL_GRACE` s later is stopped; ``min_mapping`` (seconds): a rung

@@ -25,12 +25,12 @@ from pipeline.cameras.export import (
 from pipeline.cameras.mapping import (
     run_sfm,
 )
-from pipeline.cameras.progress import heartbeat
 from pipeline.errors import StageError
 from pipeline.inputs.photos import (
     list_photos,
 )
 from pipeline.inputs.video import extract_frames, is_video
+from pipeline.messages import heartbeat
 from pipeline.readers import read_stage_model
 from pipeline.scene.exposure import measure_exposure, write_exposure
 from pipeline.workspace import Done, Job, Workspace

@@ -28,7 +28,7 @@ from dvr.device import resolve_device
 from dvr.fields import Field, evaluate_in_chunks
 from pipeline.errors import StageError
 from pipeline.mesh.levels import level_folder
-from pipeline.messages import size_in_words
+from pipeline.messages import heartbeat, size_in_words
 from pipeline.readers import load_mesh_file, read_model
 from pipeline.render.raycast import MeshCaster
 from pipeline.texture.appearance import photos_for_bake
@@ -222,14 +222,17 @@ def run(job: Job) -> Done:
         stats["glb_bytes"] = (folder / "textured.glb").stat().st_size
         return stats
 
-    stats = bake_to(ws.mesh)
+    with heartbeat("texture: baking the photos into the atlas"):
+        stats = bake_to(ws.mesh)
     stats["glb_up"] = {"from": up_from, "node_matrix": np.round(display, 9).tolist()}
     print(f"texture: {stats['size']}² atlas, {100 * (1 - stats['unseen_frac']):.1f} % of texels from photos → "
           f"{ws.mesh / 'textured.glb'}; {size_in_words(stats['object_size'], metric)}")
     levels = {}
     for level in mesh_stamp.get("levels", {}):
         folder = level_folder(ws.mesh, level)
-        levels[level] = {k: v for k, v in bake_to(folder).items() if k in ("faces", "size", "glb_bytes")}
+        with heartbeat(f"texture: detail level {level}"):
+            baked = bake_to(folder)
+        levels[level] = {k: v for k, v in baked.items() if k in ("faces", "size", "glb_bytes")}
         print(f"texture: detail level {level}: {levels[level]['faces']} faces, {levels[level]['size']}² atlas, "
               f"{levels[level]['glb_bytes'] / 1e6:.1f} MB → {folder / 'textured.glb'}")
     if levels:

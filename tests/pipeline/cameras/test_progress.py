@@ -4,7 +4,8 @@ import subprocess
 import sys
 import time
 
-from pipeline.cameras.progress import LogProgress, heartbeat, minutes, wait_with_progress
+from pipeline.cameras.progress import LogProgress, wait_with_progress
+from pipeline.messages import heartbeat, minutes
 
 LOG = """I20261128 17:16:46.863876 1 feature_extraction.cc:270] Processed file [1/16]
 I20261128 17:16:47.061204 1 feature_extraction.cc:270] Processed file [2/16]

@@ -29,11 +29,16 @@ def test_an_unknown_level_is_one_line_naming_the_option_and_the_levels():
     assert all(name in text for name in LEVELS)
 
 
-def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_path, monkeypatch):
+def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_path, monkeypatch, capsys):
     """Two levels (preview's budget made small enough to decimate this small mesh) beside the default mesh: each
-    a clean.ply within its budget and a textured GLB, faces and GLB sizes in the stamps and the report; asking for
-    one level afterwards redoes the mesh and texture stages, not the training, and removes the other level."""
+    a clean.ply within its budget and a textured GLB, faces and GLB sizes in the stamps and the report, a progress
+    line while each bakes (every 0.05 s here, 20 s by default); asking for one level afterwards redoes the mesh and
+    texture stages, not the training, and removes the other level."""
+    import pipeline.texture.stage as texture_stage
+    from pipeline.messages import heartbeat
+
     monkeypatch.setitem(LEVELS, "preview", 1500)
+    monkeypatch.setattr(texture_stage, "heartbeat", lambda what: heartbeat(what, every=0.05))
     ws = tmp_path / "ws"
     shutil.copytree(small_ws, ws)
     cfg = tiny_training(Config(), iterations=30, batch_rays=256)
@@ -50,6 +55,8 @@ def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_pat
         glb_mesh, tex = read_textured(folder / "textured.glb")
         assert texture["levels"][level]["glb_bytes"] == (folder / "textured.glb").stat().st_size > 0
         assert texture["levels"][level]["faces"] == mesh["levels"][level] and tex.shape[2] == 3
+    out = capsys.readouterr().out
+    assert "texture: detail level preview (" in out and "texture: detail level raw (" in out, out
     report = (ws / "report.html").read_text()
     assert "Detail levels" in report and "mesh/levels/preview/textured.glb" in report
 
