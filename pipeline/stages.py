@@ -136,11 +136,11 @@ STAGES: tuple[Stage, ...] = (
           inputs=lambda ws, src: [ws.model / "final.pt", ws.root / "points.ply", ws.cameras],
           outputs=lambda ws: [ws.mesh / "clean.ply", ws.mesh / "raw.ply"]),
     Stage("texture", "UV-texture the clean mesh from the photos (reads mesh/clean.ply, model/, images/, "
-          "cameras.npz; writes mesh/textured.obj/.mtl/.png and mesh/textured.glb).", texture.run, TextureConfig,
+          "cameras.npz; writes mesh/textured.obj/.mtl/.png, .glb and .usdz).", texture.run, TextureConfig,
           requires=lambda ws: [(ws.mesh / "clean.ply", "mesh"), (ws.images, "cameras"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.mesh / "clean.ply", ws.images, ws.cameras, ws.model / "final.pt",
                                   ws.model / "appearance.json"],
-          outputs=lambda ws: [ws.mesh / f"textured.{e}" for e in ("glb", "obj", "mtl", "png")]),
+          outputs=lambda ws: [ws.mesh / f"textured.{e}" for e in ("glb", "obj", "mtl", "png", "usdz")]),
     Stage("report", "Write report.html: stage times, SfM summary, mask overlays, curves, renders, interactive "
           "mesh viewer.", report.run, None,
           requires=lambda ws: [(ws.root, "cameras")],

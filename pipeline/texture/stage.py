@@ -42,6 +42,7 @@ from pipeline.texture.atlas import (
 from pipeline.texture.blend import TexelSurface, bake
 from pipeline.texture.config import TextureConfig
 from pipeline.texture.export import export_textured
+from pipeline.texture.usdz import export_usdz
 from pipeline.workspace import Done, Job
 
 
@@ -194,8 +195,8 @@ def read_clean_mesh(path: Path) -> trimesh.Trimesh:
 
 def run(job: Job) -> Done:
     """Stage ``texture`` (called by :func:`pipeline.stages.run_stage`): the clean mesh UV-unwrapped and baked from
-    the photos (the texture field for texels no photo sees) → mesh/textured.obj/.mtl/.png and mesh/textured.glb;
-    likewise each detail level the mesh stage wrote (``mesh/levels/<level>/``)."""
+    the photos (the texture field for texels no photo sees) → mesh/textured.obj/.mtl/.png, mesh/textured.glb and
+    mesh/textured.usdz; likewise each detail level the mesh stage wrote (``mesh/levels/<level>/``)."""
     ws, cfg = job.ws, job.cfg
     final = ws.model / "final.pt"
     looks = ws.model / "appearance.json"  # per-view exposure and white balance fitted in training
@@ -217,6 +218,7 @@ def run(job: Job) -> Done:
                                                field_gain, clipped)
         out_v = to_sfm(nv, cams.scale_mat) if cfg.frame == "sfm" else nv
         export_textured(folder, out_v, nf, uvs, tex, display)
+        export_usdz(folder / "textured.usdz", out_v, nf, uvs, folder / "textured.png", display)
         stats.pop("filled")
         stats["object_size"] = {**object_size(out_v, display), "units": "metres" if metric else "arbitrary"}
         stats["glb_bytes"] = (folder / "textured.glb").stat().st_size

@@ -144,6 +144,7 @@ def test_reconstruct_a_synthetic_workspace_then_nothing_to_do(small_ws, tmp_path
     cfg.mesh.resolution, cfg.mesh.max_faces, cfg.texture.size = 64, 3000, 128
     glb = reconstruct(None, ws, cfg)
     assert glb == (ws / "mesh" / "textured.glb").resolve() and glb.exists() and (ws / "report.html").exists()
+    assert (ws / "mesh" / "textured.usdz").stat().st_size > 0
     done = {p.stem: json.loads(p.read_text())["finished"] for p in (ws / ".stages").glob("*.json")}
     assert set(done) == {"train", "mesh", "texture", "report"}  # no photos: cameras, masks, depth not run
     size = json.loads((ws / ".stages" / "texture.json").read_text())["object_size"]  # no board: a size, not in metres

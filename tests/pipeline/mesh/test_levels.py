@@ -54,6 +54,7 @@ def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_pat
         assert len(trimesh.load(folder / "clean.ply").faces) == mesh["levels"][level]
         glb_mesh, tex = read_textured(folder / "textured.glb")
         assert texture["levels"][level]["glb_bytes"] == (folder / "textured.glb").stat().st_size > 0
+        assert (folder / "textured.usdz").stat().st_size > 0
         assert texture["levels"][level]["faces"] == mesh["levels"][level] and tex.shape[2] == 3
     out = capsys.readouterr().out
     assert "texture: detail level preview (" in out and "texture: detail level raw (" in out, out
