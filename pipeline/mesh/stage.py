@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -214,8 +215,6 @@ def write_levels(ws, verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig, fiel
     """The detail levels of ``cfg.detail`` (:mod:`pipeline.mesh.levels`): the raw mesh ``verts``, ``faces`` cleaned as
     the clean mesh is, with the level's face budget, → ``mesh/levels/<level>/clean.ply``. Returns the faces of each
     level. Levels not asked for are removed (a stale one would be textured and shown as current)."""
-    import shutil
-
     asked = parse_levels(cfg.detail)
     for old in sorted((ws.mesh / "levels").glob("*")) if (ws.mesh / "levels").is_dir() else []:
         if old.name not in asked:
