@@ -179,7 +179,8 @@ def run(job: Job) -> Done:
         raise StageError(f"{final}: the trained field has no surface; check masks/ and retrain (--force)")
     ws.mesh.mkdir(parents=True, exist_ok=True)
     _export(raw, v, f, c, scale_mat, to_norm, cfg.frame)
-    cv, cf, dropped = clean_mesh(v, f, cfg, sfm_points(ws.root / "points.ply", scale_mat))
+    points = sfm_points(ws.root / "points.ply", scale_mat)
+    cv, cf, dropped = clean_mesh(v, f, cfg, points)
     for piece in dropped:
         print(f"mesh: dropped a floating piece of {piece['faces']} faces: {piece['points']} SfM points lie on it, "
               f"where the object's density of points would put {piece['expected']:.0f}")
@@ -195,7 +196,7 @@ def run(job: Job) -> Done:
     _export(clean, cv, cf, vertex_colours(field, cv, dev), scale_mat, to_norm, cfg.frame)
     units = mesh_units(ws.root, cfg.frame)  # {} unless a printed board put cameras.npz in metres
     print(f"mesh: {len(f)} raw faces, {len(cf)} clean faces{' (metres)' if units else ''} → {clean}")
-    levels = write_levels(ws, v, f, cfg, field, dev, scale_mat, to_norm)
+    levels = write_levels(ws, v, f, points, cfg, field, dev, scale_mat, to_norm)
     return Done({"raw_faces": int(len(f)), "clean_faces": int(len(cf)), "unseen_faces": unseen, "frame": cfg.frame,
                  **({"open_loops": loops, "open_length": round(length, 3)} if cfg.drop_unseen else {}),
                  "floaters": dropped, **({"levels": levels} if levels else {}),
@@ -210,16 +211,16 @@ def vertex_colours(field, verts: np.ndarray, dev) -> np.ndarray:
     return (cc.clamp(0, 1) * 255).round().byte().cpu().numpy()
 
 
-def write_levels(ws, verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig, field, dev, scale_mat: np.ndarray,
-                 to_norm: np.ndarray) -> dict:
+def write_levels(ws, verts: np.ndarray, faces: np.ndarray, points: np.ndarray | None, cfg: MeshConfig, field, dev,
+                 scale_mat: np.ndarray, to_norm: np.ndarray) -> dict:
     """The detail levels of ``cfg.detail`` (:mod:`pipeline.mesh.levels`): the raw mesh ``verts``, ``faces`` cleaned as
-    the clean mesh is, with the level's face budget, → ``mesh/levels/<level>/clean.ply``. Returns the faces of each
-    level. Levels not asked for are removed (a stale one would be textured and shown as current)."""
+    the clean mesh is (its floaters judged by the SfM ``points``), with the level's face budget, →
+    ``mesh/levels/<level>/clean.ply``. Returns the faces of each level. Levels not asked for are removed (a stale one
+    would be textured and shown as current)."""
     asked = parse_levels(cfg.detail)
     for old in sorted((ws.mesh / "levels").glob("*")) if (ws.mesh / "levels").is_dir() else []:
         if old.name not in asked:
             shutil.rmtree(old, ignore_errors=True)
-    points = sfm_points(ws.root / "points.ply", scale_mat)
     out = {}
     for level in asked:
         lv, lf, _ = clean_mesh(verts, faces, replace(cfg, max_faces=budget(level)), points)

@@ -29,7 +29,7 @@ from dvr.fields import Field, evaluate_in_chunks
 from pipeline.errors import StageError
 from pipeline.mesh.levels import level_folder
 from pipeline.messages import heartbeat, size_in_words
-from pipeline.readers import load_mesh_file, read_model
+from pipeline.readers import load_mesh_file, mesh_units, read_model
 from pipeline.render.raycast import MeshCaster
 from pipeline.texture.appearance import photos_for_bake
 from pipeline.texture.atlas import (
@@ -206,7 +206,7 @@ def run(job: Job) -> Done:
     images, field_gain, clipped = photos_for_bake(paths, looks, cfg)
     field, _, field_frame = read_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
     display, up_from = upright(cams, cfg.frame)
-    metric = cfg.frame == "sfm" and bool((ws.stamp("cameras") or {}).get("board"))  # a board: the SfM frame in metres
+    metric = bool(mesh_units(ws.root, cfg.frame))  # a printed board put the SfM frame in metres
 
     def bake_to(folder: Path) -> dict:
         """The clean mesh of ``folder`` textured into that folder; its stats."""
