@@ -198,6 +198,7 @@ def run(job: Job) -> Done:
     print(f"mesh: {len(f)} raw faces, {len(cf)} clean faces{' (metres)' if units else ''} → {clean}")
     levels = write_levels(ws, v, f, points, cfg, field, dev, scale_mat, to_norm)
     return Done({"raw_faces": int(len(f)), "clean_faces": int(len(cf)), "unseen_faces": unseen, "frame": cfg.frame,
+                 "footprint": cfg.footprint,
                  **({"open_loops": loops, "open_length": round(length, 3)} if cfg.drop_unseen else {}),
                  "floaters": dropped, **({"levels": levels} if levels else {}),
                  **units})

@@ -270,19 +270,45 @@ def size_paragraph(texture_stamp: dict) -> str:
     return f"<p>Size: {html.escape(size_in_words(size, size.get('units') == 'metres'))}.</p>"
 
 
-def levels_paragraph(texture_stamp: dict) -> str:
+INLINED_LEVELS_BYTES = 20_000_000
+"""The detail levels' GLBs inlined in the report (so its viewer can show them) up to this many bytes in all,
+lightest first; heavier ones are named by their file."""
+
+
+def levels_paragraph(texture_stamp: dict, mesh_dir: Path | None = None, viewer: bool = False) -> str:
     """The detail levels the texture stage wrote besides the default mesh: faces and GLB size of each, and where it
-    is; empty without levels."""
+    is; with the ``viewer`` on the page, a button per level that shows it there (its GLB, under ``mesh_dir``,
+    inlined while :data:`INLINED_LEVELS_BYTES` allows). Empty without levels."""
     levels = texture_stamp.get("levels") or {}
     if not levels:
         return ""
+    sources, budget = {}, INLINED_LEVELS_BYTES
+    for name, lv in sorted(levels.items(), key=lambda kv: kv[1]["glb_bytes"]):
+        glb = None if mesh_dir is None else mesh_dir / "levels" / name / "textured.glb"
+        if viewer and glb is not None and glb.exists() and lv["glb_bytes"] <= budget:
+            sources[name] = "data:model/gltf-binary;base64," + base64.b64encode(glb.read_bytes()).decode()
+            budget -= lv["glb_bytes"]
+
+    def show(name: str) -> str:
+        if name in sources or (name == "default" and viewer):
+            return f'<button onclick="showLevel({html.escape(json.dumps(name))})">show</button>'
+        return "open the file" if viewer else ""
+
     rows = "".join(f"<tr><td>{html.escape(name)}</td><td>{lv['faces']}</td><td>{lv['glb_bytes'] / 1e6:.1f} MB</td>"
-                   f"<td>mesh/levels/{html.escape(name)}/textured.glb</td></tr>" for name, lv in levels.items())
+                   f"<td>mesh/levels/{html.escape(name)}/textured.glb</td><td>{show(name)}</td></tr>"
+                   for name, lv in levels.items())
     main = f"<tr><td>default</td><td>{texture_stamp.get('faces', '–')}</td><td>" + (
         f"{texture_stamp['glb_bytes'] / 1e6:.1f} MB" if "glb_bytes" in texture_stamp else "–") + \
-        "</td><td>mesh/textured.glb (in the viewer above)</td></tr>"
-    return ("<h3>Detail levels</h3><table><tr><th>level</th><th>faces</th><th>GLB</th><th>file</th></tr>"
-            f"{main}{rows}</table>")
+        f"</td><td>mesh/textured.glb</td><td>{show('default')}</td></tr>"
+    script = ""
+    if viewer:  # the default mesh's source is the viewer's own, kept when another level is shown
+        script = ("<script>const levelSources = " + json.dumps(sources) + ";"
+                  "function showLevel(name) { const v = document.getElementById('viewer');"
+                  " if (!levelSources.default) levelSources.default = v.src;"
+                  " v.src = levelSources[name]; document.getElementById('level-shown').textContent = name; }"
+                  "</script><p>In the viewer: <b id=\"level-shown\">default</b></p>")
+    return ("<h3>Detail levels</h3><table><tr><th>level</th><th>faces</th><th>GLB</th><th>file</th><th>viewer</th>"
+            f"</tr>{main}{rows}</table>{script}")
 
 
 def build(ws: Workspace, stage_order: tuple[str, ...], stats: dict | None = None) -> str:
@@ -320,7 +346,7 @@ def build(ws: Workspace, stage_order: tuple[str, ...], stats: dict | None = None
         else:
             parts.append("<p>(interactive viewer: run <code>make setup-web</code> to install model-viewer, then "
                          "rerun the report stage)</p>")
-        parts.append(levels_paragraph(stamps.get("texture") or {}))
+        parts.append(levels_paragraph(stamps.get("texture") or {}, ws.mesh, VIEWER_JS.exists()))
     ren = renders(ws, out_dir=rep)
     if stats is not None and ren:  # the mean PSNR of the held-out views when there are any, else the photos'
         tag_of = "held-out" if ren[0][0].startswith("held-out") else "view"

@@ -64,6 +64,10 @@ class TextureConfig:
     """Seam levelling: weight of the pull of every offset towards 0."""
     seam_fit_texels: int = 200000
     """Seam levelling: texels (a fixed random sample) the offsets are fitted on."""
+    normal_map: bool = True
+    """Bake a tangent-space normal map of the trained field's normals (a light mesh shades like the full one)."""
+    occlusion_reach: float = 0.2
+    """Ambient-occlusion map: how far (working-sphere radii) the field is searched for what shades a point; 0: none."""
     frame: Literal["sfm", "normalized"] = "sfm"
     """Frame of the textured outputs: sfm (that of cameras.npz) or normalized (unit sphere)."""
     device: str = "auto"

@@ -11,6 +11,7 @@ import trimesh
 from dvr.atomic import atomic_file, export_mesh, write_text
 from pipeline.errors import StageError
 from pipeline.readers import load_mesh_file
+from pipeline.texture.surface_maps import SurfaceMaps
 
 
 def read_textured(path: Path) -> tuple[trimesh.Trimesh, np.ndarray]:
@@ -36,48 +37,82 @@ GLTF_CLAMP_SAMPLER = {"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wra
 def clamped_textures(tree: dict) -> None:
     """Every texture of a glTF ``tree`` samples with :data:`GLTF_CLAMP_SAMPLER`: the atlas's charts reach to within
     a texel of its border, and with the default REPEAT wrap a viewer's bilinear and mip-map filtering there blends
-    in the opposite border's texels."""
+    in the opposite border's texels. A vertex attribute ``_tangent`` (trimesh writes its own attributes with a
+    leading underscore) becomes glTF's ``TANGENT``."""
     if tree.get("textures"):
         tree["samplers"] = [dict(GLTF_CLAMP_SAMPLER)]
         for texture in tree["textures"]:
             texture["sampler"] = 0
+    for mesh in tree.get("meshes", []):
+        for primitive in mesh["primitives"]:
+            if "_tangent" in primitive["attributes"]:
+                primitive["attributes"]["TANGENT"] = primitive["attributes"].pop("_tangent")
+
+
+MAP_FILES = {"normal": "textured_normal.png", "occlusion": "textured_occlusion.png"}
+"""The files of the surface maps beside ``textured.png``."""
+
+
+def _image(values: np.ndarray):
+    from PIL import Image
+
+    return Image.fromarray((np.asarray(values).clip(0, 1) * 255).round().astype(np.uint8))
 
 
 def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: np.ndarray,
-                    display: np.ndarray | None = None) -> None:
+                    display: np.ndarray | None = None, normals: np.ndarray | None = None,
+                    maps: SurfaceMaps | None = None) -> None:
     """``textured.glb`` (PBR material), ``textured.obj`` / ``.mtl`` and their texture ``textured.png`` in ``out_dir``.
-    ``display``: the GLB's node transform (:func:`upright`; its vertices stay those given). The PNG is encoded once
-    for the OBJ (in a thread: the encoder releases the GIL) while the GLB encodes its own."""
-    from PIL import Image
-
-    img = Image.fromarray((tex.clip(0, 1) * 255).round().astype(np.uint8))
+    ``display``: the GLB's node transform (:func:`upright`; its vertices stay those given); ``normals``: unit vertex
+    normals for smooth shading (else a viewer shades faces flat); ``maps``: the normal and occlusion maps
+    (:data:`MAP_FILES`, in the GLB's material and the MTL; the GLB then carries the tangents they were baked in). The
+    PNGs are encoded once for the OBJ (in a thread: the encoder releases the GIL) while the GLB encodes its own."""
+    img = _image(tex)
+    extra = {} if maps is None else {k: v for k, v in (("normal", maps.normal), ("occlusion", maps.occlusion))
+                                     if v is not None}
+    images = {"textured.png": img, **{MAP_FILES[k]: _image(v) for k, v in extra.items()}}
     png_error: list[BaseException] = []
 
-    def write_png():
+    def write_pngs():
         try:
-            with atomic_file(out_dir / "textured.png") as f:
-                img.save(f, format="PNG")
+            for name, image in images.items():
+                with atomic_file(out_dir / name) as f:
+                    image.save(f, format="PNG")
+            for key, name in MAP_FILES.items():  # a map not baked this time is not left from an earlier run
+                if key not in extra:
+                    (out_dir / name).unlink(missing_ok=True)
         except BaseException as exc:  # noqa: BLE001 - raised below, in the caller's thread (a full disk)
             png_error.append(exc)
 
-    png = threading.Thread(target=write_png)
+    png = threading.Thread(target=write_pngs)
     png.start()
     try:
-        mat = trimesh.visual.material.PBRMaterial(baseColorTexture=img, metallicFactor=0.0, roughnessFactor=1.0)
+        mat = trimesh.visual.material.PBRMaterial(
+            baseColorTexture=img, metallicFactor=0.0, roughnessFactor=1.0,
+            normalTexture=images.get(MAP_FILES["normal"]), occlusionTexture=images.get(MAP_FILES["occlusion"]))
         mesh = trimesh.Trimesh(verts, faces, visual=trimesh.visual.TextureVisuals(uv=uvs, material=mat),
-                               process=False)
+                               vertex_normals=normals, process=False)
+        if maps is not None and "normal" in extra:
+            mesh.vertex_attributes["tangent"] = np.asarray(maps.tangents, np.float32)
         scene = trimesh.Scene()
         scene.add_geometry(mesh, node_name="object", geom_name="textured",
                            transform=np.eye(4) if display is None else display)
-        export_mesh(out_dir / "textured.glb", scene, tree_postprocessor=clamped_textures)
+        export_mesh(out_dir / "textured.glb", scene, tree_postprocessor=clamped_textures,
+                    include_normals=normals is not None)
         simple = trimesh.visual.material.SimpleMaterial(name="textured", diffuse=(255, 255, 255, 255),
                                                         ambient=(255, 255, 255, 255), specular=(0, 0, 0, 255))
         mesh_obj = trimesh.Trimesh(verts, faces, visual=trimesh.visual.TextureVisuals(uv=uvs, material=simple),
-                                   process=False)
-        text, files = trimesh.exchange.obj.export_obj(mesh_obj, include_texture=True, return_texture=True,
+                                   vertex_normals=normals, process=False)
+        text, files = trimesh.exchange.obj.export_obj(mesh_obj, include_normals=normals is not None,
+                                                      include_texture=True, return_texture=True,
                                                       mtl_name="textured.mtl")
         mtl = next(data.decode() for name, data in files.items() if name.endswith(".mtl"))
-        write_text(out_dir / "textured.mtl", mtl + "\nmap_Kd textured.png")  # the material's texture: textured.png
+        lines = ["map_Kd textured.png"]  # the material's texture: textured.png
+        if "normal" in extra:  # the PBR extension of MTL (three.js, tinyobjloader, Blender read it)
+            lines.append(f"norm {MAP_FILES['normal']}")
+        if "occlusion" in extra:
+            lines.append(f"map_ao {MAP_FILES['occlusion']}")
+        write_text(out_dir / "textured.mtl", mtl + "\n" + "\n".join(lines))
         write_text(out_dir / "textured.obj", text)
     finally:
         png.join()

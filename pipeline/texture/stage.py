@@ -42,6 +42,7 @@ from pipeline.texture.atlas import (
 from pipeline.texture.blend import TexelSurface, bake
 from pipeline.texture.config import TextureConfig
 from pipeline.texture.export import export_textured
+from pipeline.texture.surface_maps import SurfaceField, bake_surface_maps, surface_field
 from pipeline.texture.usdz import export_usdz
 from pipeline.workspace import Done, Job
 
@@ -109,11 +110,14 @@ def texels_per_unit(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int,
 
 def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams: Cameras, cfg: TextureConfig,
                  field: Field | None = None, field_frame: np.ndarray | None = None,
-                 field_gain: np.ndarray | None = None, clipped: list[np.ndarray] | None = None):
+                 field_gain: np.ndarray | None = None, clipped: list[np.ndarray] | None = None,
+                 occupancy: SurfaceField | None = None):
     """Normalized-frame mesh → (new verts, new faces, uvs, texture (side, side, 3) float, stats); the side follows
     the photos' resolution on the object (:func:`texels_per_unit`). ``field_gain``: see :func:`fill_unseen`;
     ``clipped``: the photos' over-exposed pixels (:func:`pipeline.texture.blend.clipped_pixels` of the photos as taken,
-    before :func:`undo_appearance`), down-weighted by ``clipped_weight``; default: none."""
+    before :func:`undo_appearance`), down-weighted by ``clipped_weight``; default: none. ``stats["normals"]``: the new
+    vertices' unit normals; with the trained ``occupancy``, ``stats["maps"]``: its normal and occlusion
+    maps (:func:`pipeline.texture.surface_maps.bake_surface_maps`, as ``cfg`` asks)."""
     images = [np.asarray(im, np.float32) for im in images]  # the bake's dtype: the extremes of float64 photos would
     # not round-trip through the float32 statistics of the photo-consistency pass
     base = trimesh.Trimesh(verts_n, faces, process=False)
@@ -141,7 +145,10 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
     tex, filled = dilate_gutter(tex, valid, cfg.gutter)
     covered_faces = np.unique(fid[valid])
     stats = {"size": side, "texels": int(valid.sum()), "unseen_frac": float(unseen.mean()) if len(unseen) else 0.0,
-             "faces": int(len(nf)), "faces_with_texels": int(len(covered_faces)), "filled": filled}
+             "faces": int(len(nf)), "faces_with_texels": int(len(covered_faces)), "filled": filled, "normals": normals}
+    if occupancy is not None and (cfg.normal_map or cfg.occlusion_reach > 0):
+        stats["maps"] = bake_surface_maps(occupancy, nv, nf, uvs, normals, fid, cfg.normal_map, cfg.occlusion_reach,
+                                          cfg.gutter)
     return nv, nf, uvs, tex, stats
 
 
@@ -176,6 +183,12 @@ def upright(cams: Cameras, frame: str) -> tuple[np.ndarray, str]:
     return T, source
 
 
+def turned(directions: np.ndarray, similarity: np.ndarray) -> np.ndarray:
+    """Unit ``directions`` (N, 3) turned by the rotation of the 4×4 ``similarity``."""
+    d = np.asarray(directions, np.float64) @ np.asarray(similarity, np.float64)[:3, :3].T
+    return d / np.linalg.norm(d, axis=1, keepdims=True).clip(1e-12)
+
+
 def object_size(verts: np.ndarray, display: np.ndarray) -> dict:
     """The box of the mesh ``verts`` in the GLB's display frame (``display``: :func:`upright`; +Y up, +Z towards the
     first photo's camera), in the mesh's units: ``height`` (along Y), ``width`` (X), ``depth`` (Z)."""
@@ -205,6 +218,7 @@ def run(job: Job) -> Done:
     mesh_stamp = ws.stamp("mesh") or {}
     images, field_gain, clipped = photos_for_bake(paths, looks, cfg)
     field, _, field_frame = read_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
+    occupancy = None if field is None else surface_field(field, field_frame, mesh_stamp.get("footprint", 0.0))
     display, up_from = upright(cams, cfg.frame)
     metric = bool(mesh_units(ws.root, cfg.frame))  # a printed board put the SfM frame in metres
 
@@ -215,11 +229,18 @@ def run(job: Job) -> Done:
         if mesh_stamp.get("frame", "sfm") == "sfm":
             verts_n = to_normalized(verts_n, cams.scale_mat)
         nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame,
-                                               field_gain, clipped)
+                                               field_gain, clipped, occupancy)
         out_v = to_sfm(nv, cams.scale_mat) if cfg.frame == "sfm" else nv
-        export_textured(folder, out_v, nf, uvs, tex, display)
-        export_usdz(folder / "textured.usdz", out_v, nf, uvs, folder / "textured.png", display)
+        normals, maps = stats.pop("normals"), stats.pop("maps", None)
+        if cfg.frame == "sfm":  # directions turn with the frame (a similarity: scale, rotation, shift)
+            normals = turned(normals, cams.scale_mat)
+            if maps is not None:
+                maps.tangents[:, :3] = turned(maps.tangents[:, :3], cams.scale_mat)
+        export_textured(folder, out_v, nf, uvs, tex, display, normals, maps)
+        export_usdz(folder / "textured.usdz", out_v, nf, uvs, folder / "textured.png", display, normals)
         stats.pop("filled")
+        if maps is not None:
+            stats["normal_map_sure"] = round(maps.sure, 4)
         stats["object_size"] = {**object_size(out_v, display), "units": "metres" if metric else "arbitrary"}
         stats["glb_bytes"] = (folder / "textured.glb").stat().st_size
         return stats

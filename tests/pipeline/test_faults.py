@@ -211,7 +211,7 @@ def test_a_full_disk_at_every_write_of_every_stage_is_one_line_and_the_next_run_
     assert set(STAGE_NAMES) <= {h[0] for h in hits}
     writers = {h[2] for h in hits}  # the functions that called dvr.atomic: every kind of file
     assert {"begin", "mark_done", "import_cameras", "save_cameras", "write_points", "run", "write_overlays",
-            "_fresh_or_resume", "save_checkpoint", "save_model", "_export", "export_textured", "write_png",
+            "_fresh_or_resume", "save_checkpoint", "save_model", "_export", "export_textured", "write_pngs",
             "curves"} <= writers, writers
     assert glb_summary(ws) == clean
 

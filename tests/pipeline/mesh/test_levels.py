@@ -10,7 +10,7 @@ from pipeline.config import Config
 from pipeline.errors import StageError
 from pipeline.mesh.levels import LEVELS, budget, parse_levels
 from pipeline.stages import reconstruct, run_stage
-from pipeline.texture.export import read_textured
+from pipeline.texture.export import MAP_FILES, read_textured
 from tests.conftest import tiny_training
 
 
@@ -48,6 +48,7 @@ def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_pat
     mesh = json.loads((ws / ".stages" / "mesh.json").read_text())
     texture = json.loads((ws / ".stages" / "texture.json").read_text())
     assert list(mesh["levels"]) == ["preview", "raw"] and mesh["levels"]["preview"] <= 1500
+    assert 0.5 < texture["normal_map_sure"] <= 1.0
     assert mesh["levels"]["raw"] > mesh["clean_faces"] > mesh["levels"]["preview"]
     for level in ("preview", "raw"):
         folder = ws / "mesh" / "levels" / level
@@ -55,6 +56,7 @@ def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_pat
         glb_mesh, tex = read_textured(folder / "textured.glb")
         assert texture["levels"][level]["glb_bytes"] == (folder / "textured.glb").stat().st_size > 0
         assert (folder / "textured.usdz").stat().st_size > 0
+        assert all((folder / name).stat().st_size > 0 for name in MAP_FILES.values())  # baked per level
         assert texture["levels"][level]["faces"] == mesh["levels"][level] and tex.shape[2] == 3
     out = capsys.readouterr().out
     assert "texture: detail level preview (" in out and "texture: detail level raw (" in out, out

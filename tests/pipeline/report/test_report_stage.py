@@ -1,5 +1,13 @@
-"""The report's words for the cameras stage (pipeline/report/stage.py)."""
+"""The report (pipeline/report/stage.py): the cameras stage in words, the object's size, the levels in its viewer."""
 
+import base64
+import json
+import shutil
+import subprocess
+
+import pytest
+
+from pipeline.report import stage as report
 from pipeline.report.stage import capture_section, size_paragraph
 from pipeline.workspace import Workspace
 
@@ -28,3 +36,31 @@ def test_the_objects_size_in_millimetres_with_a_board_else_the_scale_is_arbitrar
     text = size_paragraph(arbitrary)
     assert "the scale is arbitrary" in text and "mm" not in text and "1.7" not in text
     assert size_paragraph({}) == ""
+
+
+def test_the_viewer_switches_between_the_inlined_levels(tmp_path, monkeypatch):
+    """A button per level whose GLB is inlined (lightest first, within the budget); the page's script, run by node
+    on a stand-in for the viewer element, swaps the viewer's source to the level asked for and back to the default;
+    a level past the budget is left to its file."""
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed (make setup-web needs it too)")
+    for name, size in (("preview", 300), ("full", 900)):
+        folder = tmp_path / "levels" / name
+        folder.mkdir(parents=True)
+        (folder / "textured.glb").write_bytes(name.encode() * size)
+    monkeypatch.setattr(report, "INLINED_LEVELS_BYTES", 3000)
+    stamp = {"faces": 100, "glb_bytes": 2000, "levels": {"preview": {"faces": 50, "glb_bytes": 2100},
+                                                        "full": {"faces": 400, "glb_bytes": 3600}}}
+    page = report.levels_paragraph(stamp, tmp_path, viewer=True)
+    assert page.count("<button") == 2 and "open the file" in page and 'showLevel(&quot;preview&quot;)' in page
+    script = page[page.index("<script>") + len("<script>"):page.index("</script>")]
+    run = ("const shown = {textContent: ''}; const viewer = {src: 'data:default'};"
+           "const document = {getElementById: id => id === 'viewer' ? viewer : shown};" + script +
+           "showLevel('preview'); const a = [viewer.src, shown.textContent];"
+           "showLevel('default'); console.log(JSON.stringify([a, [viewer.src, shown.textContent]]));")
+    out = subprocess.run([node, "-e", run], capture_output=True, text=True, check=True).stdout
+    (preview_src, preview_name), back = json.loads(out)
+    assert base64.b64decode(preview_src.split(",", 1)[1]) == b"preview" * 300 and preview_name == "preview"
+    assert back == ["data:default", "default"]
+    assert report.levels_paragraph(stamp, tmp_path, viewer=False).count("<button") == 0

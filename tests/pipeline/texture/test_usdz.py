@@ -44,11 +44,9 @@ def test_usdz_passes_usds_validators_and_stands_upright(tmp_path):
     assert any(n.endswith("textured.png") for n in zipfile.ZipFile(out).namelist())
 
 
-def test_usdz_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
-    """A failure while packaging leaves no .usdz (and no temporary folder) behind."""
-    from pxr import UsdUtils
-
-    monkeypatch.setattr(UsdUtils, "CreateNewARKitUsdzPackage", lambda *a: False)
+def test_usdz_is_written_whole_or_not_at_all(tmp_path):
+    """A failure while packaging (a texture that cannot be read) leaves no .usdz (and no temporary folder) behind."""
+    box = trimesh.creation.box()
     with pytest.raises(OSError, match="could not package"):
-        _box_usdz(tmp_path, np.eye(4))
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["textured.png"]
+        export_usdz(tmp_path / "textured.usdz", box.vertices, box.faces, np.zeros((8, 2)), tmp_path / "textured.png")
+    assert list(tmp_path.iterdir()) == []
