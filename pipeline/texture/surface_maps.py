@@ -216,16 +216,20 @@ class SurfaceField:
 def surface_field(field: Field, field_frame: np.ndarray | None, footprint: float = 0.0) -> SurfaceField:
     """The occupancy the mesh stage extracted (``footprint``: its band above the support plane extruded,
     :func:`dvr.extract.footprint_occupancy`) read at points of the mesh's frame (``field_frame``: 4×4 map of the
-    field's frame to that one, a similarity; None: the same frame)."""
+    field's frame to that one, a similarity; None: the same frame). The points may be on any device: the field
+    reads them on its own."""
     occupancy = footprint_occupancy(field, footprint)
     frame = np.eye(4) if field_frame is None else np.asarray(field_frame, np.float64)
     inv = torch.from_numpy(np.linalg.inv(frame)).float()
     scale = abs(float(np.linalg.det(frame[:3, :3]))) ** (1.0 / 3.0)
     res = getattr(field, "grid_resolution", None) or 256
+    device = next(field.parameters()).device
 
     def logit(p: torch.Tensor) -> torch.Tensor:
-        m = inv.to(p)
-        return occupancy(p @ m[:3, :3].T + m[:3, 3])
+        """The logits at points ``p`` of the mesh's frame, computed on the field's device, returned on ``p``'s."""
+        m = inv.to(device)
+        q = p.to(device=device, dtype=torch.float32)
+        return occupancy(q @ m[:3, :3].T + m[:3, 3]).to(p.device)
 
     return SurfaceField(logit, 2.0 / res * scale)
 

@@ -167,3 +167,25 @@ def test_ambient_occlusion_open_on_a_floor_and_dark_in_a_pit():
     assert 0.35 < floor_by_wall < 0.75
     with pytest.raises(ValueError, match="expected points"):
         ambient_occlusion(slab, np.zeros((2, 3)), up, 0.2, 2 * CELL)
+
+
+def test_surface_field_reads_the_field_in_the_meshs_frame():
+    """A trained-field stand-in (a grid field set to a sphere's logits) seen through a similarity of scale 2 and a
+    shift: the logit at a mesh-frame point is the field's at the point mapped back, and the cell is the grid's
+    spacing scaled by 2; the footprint band is the mesh stage's (none without a support plane)."""
+    from dvr.config import FieldConfig
+    from dvr.fields import make_field
+    from pipeline.texture.surface_maps import surface_field
+
+    field = make_field(FieldConfig(base_res=32))
+    axis = torch.linspace(-1, 1, 33)
+    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1)
+    field.init_occupancy(sphere_logit(grid.reshape(-1, 3)).reshape(33, 33, 33))
+    frame = np.diag([2.0, 2.0, 2.0, 1.0])
+    frame[:3, 3] = [1.0, -2.0, 0.5]
+    surface = surface_field(field, frame, footprint=0.03)
+    assert surface.cell == pytest.approx(2.0 / 32 * 2.0)
+    pts = torch.tensor([[0.3, 0.1, -0.2], [0.0, 0.9, 0.1]])
+    mesh_pts = pts * 2.0 + torch.tensor([1.0, -2.0, 0.5])
+    with torch.no_grad():
+        np.testing.assert_allclose(surface.logit(mesh_pts).numpy(), field.occupancy(pts).numpy(), atol=1e-5)
