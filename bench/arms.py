@@ -4,11 +4,13 @@
     python bench/arms.py dtu [--preset P] [--reference-cameras] [OPTIONS]
     python bench/arms.py gt SCENE [--preset P] [--over JSON] [OPTIONS]
     python bench/arms.py real CAPTURE --arm "" --arm "OPTIONS" [--preset P]
+    python bench/arms.py masks CAPTURE --arm "" --arm "OPTIONS"
 
 ``pair``: a synthetic scene from its photos, every arm on ONE SfM mapping (another mapping of the same photos moves
 the held-out figure by up to about 1 dB, which would hide an option's effect). ``dtu``: DTU scan24 through the
 bench's protocol. ``gt``: a synthetic scene with its ground-truth cameras and masks. ``real``: options of training
-and after on a real capture's bench workspace. ``python bench/arms.py COMMAND --help`` says more.
+and after on a real capture's bench workspace. ``masks``: options of the masks stage on a real capture with hand
+masks. ``python bench/arms.py COMMAND --help`` says more.
 """
 from __future__ import annotations
 
@@ -161,6 +163,39 @@ def real(argv: list[str]) -> None:
               flush=True)
 
 
+MASKS_HELP = """Options of the masks stage on a real capture of the bench with hand masks (``blowtorch``), every arm
+on the cameras of its bench row (``bench/runs/real_<capture>``, made by ``python bench/run.py --only <capture>``
+when missing):
+
+    python bench/arms.py masks blowtorch --arm "" --arm "--masks.carve-fraction 0.07"
+
+Prints one line per arm: the masks' mean IoU against the hand masks (:func:`bench.evaluate.masks_iou`) and the
+stage's seconds; each arm's workspace is kept in ``bench/runs/work/masks_arm/<capture>/<k>``.
+"""
+
+
+def masks(argv: list[str]) -> None:
+    ap = _parser("masks", MASKS_HELP)
+    ap.add_argument("capture", choices=sorted(c for c, folder in ev.REAL.items() if (folder / "masks").is_dir()))
+    ap.add_argument("--arm", action="append", default=None, help='options of one arm ("" for the defaults)')
+    a = ap.parse_args(argv)
+    full = ev.RUNS / f"real_{a.capture}"
+    if not (full / ".stages" / "cameras.json").exists():
+        sys.exit(f"{full}: no bench workspace; make it with python bench/run.py --only {a.capture}")
+    hand = ev.undistorted_hand_masks(full, ev.REAL[a.capture] / "masks")
+    for k, arm in enumerate(a.arm if a.arm is not None else [""]):
+        ws = ev.fresh_folder(ev.RUNS / "work" / "masks_arm" / a.capture / str(k))
+        for name in ("images", "sfm", "cameras.npz", "exposure.json", "points.ply", ".stages/cameras.json"):
+            if (full / name).is_dir():
+                shutil.copytree(full / name, ws / name)
+            elif (full / name).exists():
+                (ws / name).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(full / name, ws / name)
+        ev.stages(("masks",), ws, ev.config(None, arm.split()))
+        print(f"{arm or '(defaults)':40s} mask_iou {ev.masks_iou(ws, hand):.4f}  "
+              f"seconds {Workspace(ws).seconds()['masks']:.1f}", flush=True)
+
+
 def _parser(command: str, text: str) -> argparse.ArgumentParser:
     return argparse.ArgumentParser(prog=f"bench/arms.py {command}", description=text,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -217,7 +252,7 @@ def gt(argv: list[str]) -> None:
                       **{k: r.get(k) for k in keys}}))
 
 
-COMMANDS = {"pair": pair, "dtu": dtu, "gt": gt, "real": real}
+COMMANDS = {"pair": pair, "dtu": dtu, "gt": gt, "real": real, "masks": masks}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -227,7 +262,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     ap = argparse.ArgumentParser(prog="bench/arms.py", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("command", choices=sorted(COMMANDS), help="pair, dtu, gt or real (each has its own --help)")
+    ap.add_argument("command", choices=sorted(COMMANDS), help="pair, dtu, gt, real or masks (each has its own --help)")
     ap.parse_args(argv[:1])
 
 

@@ -105,3 +105,37 @@ def test_real_trains_each_arm_on_the_bench_workspace_without_its_held_out_photos
     arms.main(["real", "mouse", "--arm="])
     assert undistorted == [tmp_path / "photos" / "masks"]
     assert "psnr_hand 7.0000" in capsys.readouterr().out
+
+
+def test_masks_runs_each_arm_on_the_bench_rows_cameras(tmp_path, monkeypatch, capsys):
+    """``masks``: each arm's masks stage on a copy of the bench row's photos and cameras with its own options, scored
+    against the hand masks; without the row one line says how to make it; a capture without hand masks is no
+    choice."""
+    monkeypatch.setattr(arms.ev, "RUNS", tmp_path)
+    photos = tmp_path / "photos"
+    (photos / "masks").mkdir(parents=True)
+    monkeypatch.setattr(arms.ev, "REAL", {"blowtorch": photos, "mouse": tmp_path / "none"})
+    with pytest.raises(SystemExit, match="python bench/run.py --only blowtorch"):
+        arms.main(["masks", "blowtorch"])
+    with pytest.raises(SystemExit):
+        arms.main(["masks", "mouse"])
+    full = tmp_path / "real_blowtorch"
+    (full / ".stages").mkdir(parents=True)
+    (full / ".stages" / "cameras.json").write_text("{}")
+    (full / "images").mkdir()
+    (full / "images" / "a.png").write_bytes(b"x")
+    (full / "cameras.npz").write_bytes(b"y")
+    runs = []
+
+    def stages(names, ws, cfg):
+        runs.append((names, cfg.masks.carve_fraction, sorted(p.name for p in ws.iterdir())))
+        (ws / ".stages" / "masks.json").write_text('{"seconds": 3.5}')
+
+    monkeypatch.setattr(arms.ev, "stages", stages)
+    monkeypatch.setattr(arms.ev, "undistorted_hand_masks", lambda full, hand: hand)
+    monkeypatch.setattr(arms.ev, "masks_iou", lambda ws, hand: 0.5 if hand == photos / "masks" else 0.0)
+    arms.main(["masks", "blowtorch", "--arm=", "--arm=--masks.carve-fraction 0.07"])
+    assert [r[:2] for r in runs] == [(("masks",), 0.0), (("masks",), 0.07)]
+    assert runs[0][2] == [".stages", "cameras.npz", "images"]
+    out = capsys.readouterr().out
+    assert out.count("mask_iou 0.5000  seconds 3.5") == 2
