@@ -136,7 +136,8 @@ STAGES: tuple[Stage, ...] = (
           inputs=lambda ws, src: [ws.model / "final.pt", ws.root / "points.ply", ws.cameras],
           outputs=lambda ws: [ws.mesh / "clean.ply", ws.mesh / "raw.ply"]),
     Stage("texture", "UV-texture the clean mesh from the photos (reads mesh/clean.ply, model/, images/, "
-          "cameras.npz; writes mesh/textured.obj/.mtl/.png, .glb and .usdz).", texture.run, TextureConfig,
+          "cameras.npz; writes mesh/textured.obj/.mtl/.png, .glb and .usdz, and the normal and occlusion maps).",
+          texture.run, TextureConfig,
           requires=lambda ws: [(ws.mesh / "clean.ply", "mesh"), (ws.images, "cameras"), (ws.cameras, "cameras")],
           inputs=lambda ws, src: [ws.mesh / "clean.ply", ws.images, ws.cameras, ws.model / "final.pt",
                                   ws.model / "appearance.json"],

@@ -108,7 +108,7 @@ def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np
                                                       mtl_name="textured.mtl")
         mtl = next(data.decode() for name, data in files.items() if name.endswith(".mtl"))
         lines = ["map_Kd textured.png"]  # the material's texture: textured.png
-        if "normal" in extra:  # the PBR extension of MTL (three.js, tinyobjloader, Blender read it)
+        if "normal" in extra:  # the PBR extension of MTL (three.js's MTLLoader and tinyobjloader read it)
             lines.append(f"norm {MAP_FILES['normal']}")
         if "occlusion" in extra:
             lines.append(f"map_ao {MAP_FILES['occlusion']}")

@@ -11,6 +11,8 @@
    colour: seams match.
 4. Texels no photo sees take the trained texture field's colour; a gutter is dilated around every chart so
    mip-maps do not bleed background into the surface.
+5. From the trained occupancy field: a tangent-space normal map of its own normals and an ambient-occlusion map
+   (:mod:`pipeline.texture.surface_maps`), written beside the texture and into the GLB, MTL and USDZ.
 """
 
 from __future__ import annotations
@@ -196,6 +198,23 @@ def object_size(verts: np.ndarray, display: np.ndarray) -> dict:
     return {"height": float(ext[1]), "width": float(ext[0]), "depth": float(ext[2])}
 
 
+def fine_mesh(path: Path, mesh_stamp: dict, cams: Cameras) -> tuple[np.ndarray, np.ndarray] | None:
+    """The mesh stage's full-resolution mesh (``raw.ply``) in the normalized frame: its vertices and unit vertex
+    normals (the normal map's where the field is unsure); None when it is missing or unreadable (the simplified
+    mesh's normals stand in)."""
+    try:
+        raw = trimesh.load(path, file_type="ply", process=False)
+    except Exception:  # noqa: BLE001 - a missing or damaged file: only the fallback of a few texels is lost
+        return None
+    if not isinstance(raw, trimesh.Trimesh) or len(raw.faces) == 0:
+        return None
+    verts = np.asarray(raw.vertices, np.float64)
+    if mesh_stamp.get("frame", "sfm") == "sfm":
+        verts = to_normalized(verts, cams.scale_mat)
+    normals = trimesh.Trimesh(verts, np.asarray(raw.faces), process=False).vertex_normals
+    return verts, np.asarray(normals, np.float64)
+
+
 def read_clean_mesh(path: Path) -> trimesh.Trimesh:
     """The mesh stage's ``clean.ply`` (StageError naming it: unreadable, no triangles, empty)."""
     m = load_mesh_file(path, "ply", "mesh", "rerun the mesh stage (mesh --force)")
@@ -218,7 +237,8 @@ def run(job: Job) -> Done:
     mesh_stamp = ws.stamp("mesh") or {}
     images, field_gain, clipped = photos_for_bake(paths, looks, cfg)
     field, _, field_frame = read_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
-    occupancy = None if field is None else surface_field(field, field_frame, mesh_stamp.get("footprint", 0.0))
+    occupancy = None if field is None else surface_field(field, field_frame, mesh_stamp.get("footprint", 0.0),
+                                                         fine_mesh(ws.mesh / "raw.ply", mesh_stamp, cams))
     display, up_from = upright(cams, cfg.frame)
     metric = bool(mesh_units(ws.root, cfg.frame))  # a printed board put the SfM frame in metres
 

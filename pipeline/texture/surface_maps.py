@@ -116,8 +116,8 @@ def field_normals(logit_fn: LogitFn, points: np.ndarray, mesh_normals: np.ndarra
     −∇f/|∇f| by central differences a cell either side (the trilinear grid's gradient jumps at every cell face;
     differences across two cells average the jumps out). Trusted where the point landed within two cells of where
     it started, on the level set (|f| below a tenth of the logit change across a cell) with a gradient, and facing
-    within 75° of the mesh's normal; elsewhere the field is unsure (a thin part, a hole the mesh closed) and the
-    mesh's normal stands."""
+    within 75° of the mesh's normal; elsewhere the field is unsure (a thin part, a hole the mesh closed) and
+    ``mesh_normals`` stand (:func:`bake_normal_map` puts the full-resolution mesh's there)."""
     if points.shape != mesh_normals.shape or points.ndim != 2 or points.shape[1:] != (3,):
         raise ValueError(f"expected points and mesh_normals (M, 3); got {points.shape}, {mesh_normals.shape}")
     p = torch.from_numpy(np.ascontiguousarray(points, np.float32))
@@ -184,13 +184,19 @@ def ambient_occlusion(logit_fn: LogitFn, points: np.ndarray, normals: np.ndarray
     return ao.double().numpy().clip(0.0, 1.0)
 
 
-def bake_normal_map(logit_fn: LogitFn, cell: float, side: int, rows: np.ndarray, cols: np.ndarray,
-                    points: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, float]:
+def bake_normal_map(surface: SurfaceField, side: int, rows: np.ndarray, cols: np.ndarray, points: np.ndarray,
+                    frames: np.ndarray) -> tuple[np.ndarray, float]:
     """(side, side, 3) normal-map colours of the texels at (``rows``, ``cols``) with surface ``points`` (M, 3) and
     tangent ``frames`` (M, 3, 3) (:func:`texel_frames`): the field's normal (:func:`field_normals`) in tangent
-    space, the mesh's own normal where the field is unsure; other texels flat. Also the share of texels the field
-    was sure at."""
-    normals, sure = field_normals(logit_fn, points, frames[:, 2], cell)
+    space; where the field is unsure, the normal of the nearest vertex of the full-resolution mesh
+    (``surface.fine``), else the mesh's own; other texels flat. Also the share of texels the field was sure at."""
+    normals, sure = field_normals(surface.logit, points, frames[:, 2], surface.cell)
+    if surface.fine is not None and not sure.all():
+        from scipy.spatial import cKDTree
+
+        fine_points, fine_normals = surface.fine
+        _, nearest = cKDTree(fine_points).query(points[~sure], k=1)
+        normals[~sure] = fine_normals[nearest]
     out = np.tile(FLAT_NORMAL, (side, side, 1))
     out[rows, cols] = encode_normals(to_tangent_space(frames, normals))
     return out, float(sure.mean()) if len(sure) else 1.0
@@ -211,13 +217,17 @@ class SurfaceField:
 
     logit: LogitFn
     cell: float
+    fine: tuple[np.ndarray, np.ndarray] | None = None
+    """The full-resolution mesh's vertices (V, 3) and unit normals (V, 3) in the mesh's frame, whose normals stand
+    where the field is unsure; None: the simplified mesh's own normals stand there."""
 
 
-def surface_field(field: Field, field_frame: np.ndarray | None, footprint: float = 0.0) -> SurfaceField:
+def surface_field(field: Field, field_frame: np.ndarray | None, footprint: float = 0.0,
+                  fine: tuple[np.ndarray, np.ndarray] | None = None) -> SurfaceField:
     """The occupancy the mesh stage extracted (``footprint``: its band above the support plane extruded,
     :func:`dvr.extract.footprint_occupancy`) read at points of the mesh's frame (``field_frame``: 4×4 map of the
     field's frame to that one, a similarity; None: the same frame). The points may be on any device: the field
-    reads them on its own."""
+    reads them on its own. ``fine``: see :class:`SurfaceField`."""
     occupancy = footprint_occupancy(field, footprint)
     frame = np.eye(4) if field_frame is None else np.asarray(field_frame, np.float64)
     inv = torch.from_numpy(np.linalg.inv(frame)).float()
@@ -231,7 +241,7 @@ def surface_field(field: Field, field_frame: np.ndarray | None, footprint: float
         q = p.to(device=device, dtype=torch.float32)
         return occupancy(q @ m[:3, :3].T + m[:3, 3]).to(p.device)
 
-    return SurfaceField(logit, 2.0 / res * scale)
+    return SurfaceField(logit, 2.0 / res * scale, fine)
 
 
 @dataclass
@@ -257,7 +267,7 @@ def bake_surface_maps(surface: SurfaceField, verts: np.ndarray, faces: np.ndarra
     if normal_map:
         r, c, pts, _, face, bary = texel_geometry(fid, uvs, faces, verts, normals, with_bary=True)
         frames = texel_frames(faces, face, bary, normals, tangents)
-        normal, sure = bake_normal_map(surface.logit, surface.cell, fid.shape[0], r, c, pts, frames)
+        normal, sure = bake_normal_map(surface, fid.shape[0], r, c, pts, frames)
         normal = dilate_gutter(normal, fid >= 0, gutter)[0]
     if occlusion_reach > 0:
         half = max(fid.shape[0] // 2, 1)

@@ -189,3 +189,40 @@ def test_surface_field_reads_the_field_in_the_meshs_frame():
     mesh_pts = pts * 2.0 + torch.tensor([1.0, -2.0, 0.5])
     with torch.no_grad():
         np.testing.assert_allclose(surface.logit(mesh_pts).numpy(), field.occupancy(pts).numpy(), atol=1e-5)
+
+
+def test_where_the_field_is_unsure_the_full_resolution_mesh_gives_the_normal():
+    """A field with no gradient anywhere: every texel unsure. With the full-resolution mesh (a fine icosphere) its
+    nearest vertex's normal is baked (the coarse sphere then shades within 1.5° of the true one); without it, the
+    coarse faces' own normals (several degrees off)."""
+    verts, faces, uvs, normals, side = _flat_icosphere()
+    fid = rasterize_atlas(uvs, faces, side)
+    fine = trimesh.creation.icosphere(5, RADIUS)
+    flat = lambda p: 0.0 * p.sum(1)  # noqa: E731
+    r, c, pts, _, face, bary = texel_geometry(fid, uvs, faces, verts, normals, with_bary=True)
+    truth = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    errors = []
+    for surface in (SurfaceField(flat, CELL, (fine.vertices, fine.vertex_normals)), SurfaceField(flat, CELL)):
+        maps = bake_surface_maps(surface, verts, faces, uvs, normals, fid, True, 0.0, 4)
+        assert maps.sure == 0.0
+        frames = texel_frames(faces, face, bary, normals, maps.tangents)
+        errors.append(_angles(shading_normals(frames, decode_normals(maps.normal[r, c])), truth).mean())
+    assert errors[0] < 1.5 < 5.0 < errors[1], errors
+
+
+def test_the_full_resolution_mesh_is_read_in_the_normalized_frame_or_not_at_all(tmp_path):
+    from dvr.cameras import Cameras
+    from pipeline.texture.stage import fine_mesh
+
+    scale = np.diag([2.0, 2.0, 2.0, 1.0])
+    scale[:3, 3] = [1.0, 0.0, 0.0]
+    cams = Cameras(K=np.eye(3)[None], R=np.eye(3)[None], t=np.zeros((1, 3)), scale_mat=scale)
+    sphere = trimesh.creation.icosphere(2, RADIUS)
+    sphere.apply_transform(scale)  # in the SfM frame
+    sphere.export(tmp_path / "raw.ply")
+    verts, normals = fine_mesh(tmp_path / "raw.ply", {"frame": "sfm"}, cams)
+    np.testing.assert_allclose(np.linalg.norm(verts, axis=1), RADIUS, atol=1e-6)
+    np.testing.assert_allclose((verts / RADIUS * normals).sum(1), 1.0, atol=0.02)
+    assert fine_mesh(tmp_path / "missing.ply", {}, cams) is None
+    (tmp_path / "bad.ply").write_bytes(b"ply\ngarbage")
+    assert fine_mesh(tmp_path / "bad.ply", {}, cams) is None
