@@ -17,13 +17,19 @@ def filling_density(side: float, area: float) -> float:
     return side * float(np.sqrt(ATLAS_UTILISATION / max(area, 1e-12)))
 
 
+RECHART_FACES = 100_000
+"""Meshes of more faces are not charted again when their atlas comes out past the largest side: charting again
+costs as much as the first time (DTU's 338 k-face raw level: 46 s a time), and the atlas is scaled onto the side."""
+
+
 def make_atlas(verts: np.ndarray, faces: np.ndarray, density: float, padding: int, max_side: int,
                min_side: int = 256):
     """xatlas at ``density`` texels per unit length (its atlas as large as that needs; re-charted at a density
     scaled to fit when its longer side falls outside [``min_side``, ``max_side``]) → (vmapping, faces into the new
     vertices, uvs in [0, 1] of a square texture, its side). The uvs keep xatlas's texel grid: a chart's texels and
     padding are texels of the texture (a non-square atlas sits in the square's lower left); only an atlas still
-    past ``max_side`` after three tries is scaled down onto it."""
+    past ``max_side`` after three tries, or at once for a mesh of more than :data:`RECHART_FACES` faces, is scaled
+    down onto it (its padding shrinks by as much)."""
     import xatlas  # here, not at the top: the config tree imports this module
 
     co = xatlas.ChartOptions()
@@ -45,7 +51,7 @@ def make_atlas(verts: np.ndarray, faces: np.ndarray, density: float, padding: in
         atlas.generate(co, po)
         w, h = atlas.width, atlas.height
         side = max(w, h)
-        if min_side <= side <= max_side:
+        if min_side <= side <= max_side or (side > max_side and len(faces) > RECHART_FACES):
             break
         # the atlas's side scales about linearly with the density; 2 % inside the bound leaves room for the packing
         density *= (0.98 * max_side if side > max_side else 1.02 * min_side) / side

@@ -795,6 +795,34 @@ def test_atlas_texels_are_texture_texels():
     assert _texels_per_length(uvs, nf, mesh.vertices[vmap], side) < 0.25 * 400
 
 
+def test_a_large_mesh_past_the_cap_is_charted_once_and_scaled_onto_it(monkeypatch):
+    """An atlas past the largest side is charted again at a lower density, unless the mesh has more than
+    ``RECHART_FACES`` faces (charting again costs as much as the first time): then it is charted once and scaled
+    onto the side, its uvs within it."""
+    import xatlas
+
+    from pipeline.texture import atlas
+
+    calls = []
+
+    class Counted(xatlas.Atlas):
+        def generate(self, *args, **kwargs):
+            calls.append(1)
+            return super().generate(*args, **kwargs)
+
+    monkeypatch.setattr(xatlas, "Atlas", Counted)
+    monkeypatch.setattr(atlas, "ATLAS_UTILISATION", 0.95)  # the first try's density overshoots the cap
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    atlas.make_atlas(mesh.vertices, mesh.faces, 400.0, 4, 512)
+    assert len(calls) > 1
+    calls.clear()
+    monkeypatch.setattr(atlas, "RECHART_FACES", len(mesh.faces) - 1)
+    vmap, nf, uvs, side = atlas.make_atlas(mesh.vertices, mesh.faces, 400.0, 4, 512)
+    assert len(calls) == 1 and side == 512 and 0 <= uvs.min() and uvs.max() <= 1
+    fid = rasterize_atlas(uvs, nf, side)
+    assert len(np.unique(fid[fid >= 0])) > 0.95 * len(nf)
+
+
 def test_unreadable_clean_mesh_is_one_line(tmp_path):
     """clean.ply is the texture stage's input, and a user may edit it: a points-only PLY was an AttributeError
     traceback ('PointCloud' object has no attribute 'faces'), a damaged one trimesh's own message."""
