@@ -214,17 +214,19 @@ def vertex_colours(field, verts: np.ndarray, dev) -> np.ndarray:
 
 def write_levels(ws, verts: np.ndarray, faces: np.ndarray, points: np.ndarray | None, cfg: MeshConfig, field, dev,
                  scale_mat: np.ndarray, to_norm: np.ndarray) -> dict:
-    """The detail levels of ``cfg.detail`` (:mod:`pipeline.mesh.levels`): the raw mesh ``verts``, ``faces`` cleaned as
-    the clean mesh is (its floaters judged by the SfM ``points``), with the level's face budget, →
-    ``mesh/levels/<level>/clean.ply``. Returns the faces of each level. Levels not asked for are removed (a stale one
-    would be textured and shown as current)."""
+    """The detail levels of ``cfg.detail`` (:mod:`pipeline.mesh.levels`), heaviest first, each cleaned as the clean
+    mesh is (its floaters judged by the SfM ``points``) with its face budget from the level before it (the first from
+    the raw mesh ``verts``, ``faces``: a chain of decimations, each from fewer faces than the raw mesh's) →
+    ``mesh/levels/<level>/clean.ply``. Returns the faces of each level, in the order asked. Levels not asked for are
+    removed (a stale one would be textured and shown as current)."""
     asked = parse_levels(cfg.detail)
     for old in sorted((ws.mesh / "levels").glob("*")) if (ws.mesh / "levels").is_dir() else []:
         if old.name not in asked:
             shutil.rmtree(old, ignore_errors=True)
     out = {}
-    for level in asked:
-        lv, lf, _ = clean_mesh(verts, faces, replace(cfg, max_faces=budget(level)), points)
+    for level in sorted(asked, key=budget, reverse=True):
+        verts, faces, _ = clean_mesh(verts, faces, replace(cfg, max_faces=budget(level)), points)
+        lv, lf = verts, faces
         if cfg.drop_unseen:
             lv, lf, _ = _drop_unseen(ws, lv, lf, scale_mat, cfg)
         folder = level_folder(ws.mesh, level)
@@ -232,4 +234,4 @@ def write_levels(ws, verts: np.ndarray, faces: np.ndarray, points: np.ndarray | 
         _export(folder / "clean.ply", lv, lf, vertex_colours(field, lv, dev), scale_mat, to_norm, cfg.frame)
         print(f"mesh: detail level {level}: {len(lf)} faces → {folder / 'clean.ply'}")
         out[level] = int(len(lf))
-    return out
+    return {level: out[level] for level in asked}

@@ -30,13 +30,24 @@ def test_an_unknown_level_is_one_line_naming_the_option_and_the_levels():
 
 
 def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_path, monkeypatch, capsys):
-    """Two levels (preview's budget made small enough to decimate this small mesh) beside the default mesh: each
-    a clean.ply within its budget and a textured GLB, faces and GLB sizes in the stamps and the report, a progress
-    line while each bakes (every 0.05 s here, 20 s by default); asking for one level afterwards redoes the mesh and
+    """Two levels (preview's budget made small enough to decimate this small mesh) beside the default mesh, the
+    lighter decimated from the heavier's clean mesh: each a clean.ply within its budget and a textured GLB, faces and
+    GLB sizes in the stamps and the report, a progress line while each bakes (every 0.05 s here, 20 s by default);
+    asking for one level afterwards redoes the mesh and
     texture stages, not the training, and removes the other level."""
+    import pipeline.mesh.stage as mesh_stage
     import pipeline.texture.stage as texture_stage
     from pipeline.messages import heartbeat
 
+    cleaned = []  # (faces in, face budget, faces out) of every clean_mesh call
+    real_clean = mesh_stage.clean_mesh
+
+    def clean_mesh(verts, faces, cfg, points=None):
+        out = real_clean(verts, faces, cfg, points)
+        cleaned.append((len(faces), cfg.max_faces, len(out[1])))
+        return out
+
+    monkeypatch.setattr(mesh_stage, "clean_mesh", clean_mesh)
     monkeypatch.setitem(LEVELS, "preview", 1500)
     monkeypatch.setattr(texture_stage, "heartbeat", lambda what: heartbeat(what, every=0.05))
     ws = tmp_path / "ws"
@@ -50,6 +61,10 @@ def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_pat
     assert list(mesh["levels"]) == ["preview", "raw"] and mesh["levels"]["preview"] <= 1500
     assert 0.5 < texture["normal_map_sure"] <= 1.0
     assert mesh["levels"]["raw"] > mesh["clean_faces"] > mesh["levels"]["preview"]
+    # the levels are a chain, heaviest first: raw from the extracted mesh, preview from raw's clean mesh
+    default, raw, preview = cleaned[:3]
+    assert raw[0] == default[0] == mesh["raw_faces"] and preview[0] == raw[2] == mesh["levels"]["raw"]
+    assert preview[1] == 1500
     for level in ("preview", "raw"):
         folder = ws / "mesh" / "levels" / level
         assert len(trimesh.load(folder / "clean.ply").faces) == mesh["levels"][level]
