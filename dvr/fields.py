@@ -305,13 +305,19 @@ def evaluate_in_chunks(fn: Callable[[torch.Tensor], torch.Tensor], points: torch
     return torch.cat([fn(points[s : s + chunk]) for s in range(0, points.shape[0], chunk)])
 
 
-def finite_difference_normals(logit_fn: Callable[[torch.Tensor], torch.Tensor], p: torch.Tensor,
-                              h: float = 5e-3) -> torch.Tensor:
-    """Unit outward normals −∇f/|∇f| by central differences (differentiable, no double backward)."""
+def central_difference_gradient(logit_fn: Callable[[torch.Tensor], torch.Tensor], p: torch.Tensor,
+                                h: float) -> torch.Tensor:
+    """∇f at points p (M, 3) → (M, 3) by central differences of step ``h`` (one call of ``logit_fn`` on 6M points)."""
     offs = torch.eye(3, dtype=p.dtype, device=p.device) * h
     pts = torch.cat([p + o for o in offs] + [p - o for o in offs], dim=0)
     v = logit_fn(pts).view(6, -1)
-    g = (v[:3] - v[3:]).T / (2 * h)
+    return (v[:3] - v[3:]).T / (2 * h)
+
+
+def finite_difference_normals(logit_fn: Callable[[torch.Tensor], torch.Tensor], p: torch.Tensor,
+                              h: float = 5e-3) -> torch.Tensor:
+    """Unit outward normals −∇f/|∇f| by central differences (differentiable, no double backward)."""
+    g = central_difference_gradient(logit_fn, p, h)
     n = -g / g.norm(dim=-1, keepdim=True).clamp_min(1e-6)
     return n
 

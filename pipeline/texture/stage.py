@@ -237,8 +237,8 @@ def run(job: Job) -> Done:
     mesh_stamp = ws.stamp("mesh") or {}
     images, field_gain, clipped = photos_for_bake(paths, looks, cfg)
     field, _, field_frame = read_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
-    occupancy = None if field is None else surface_field(field, field_frame, mesh_stamp.get("footprint", 0.0),
-                                                         fine_mesh(ws.mesh / "raw.ply", mesh_stamp, cams))
+    fine = fine_mesh(ws.mesh / "raw.ply", mesh_stamp, cams) if field is not None and cfg.normal_map else None
+    occupancy = None if field is None else surface_field(field, field_frame, mesh_stamp.get("footprint", 0.0), fine)
     display, up_from = upright(cams, cfg.frame)
     metric = bool(mesh_units(ws.root, cfg.frame))  # a printed board put the SfM frame in metres
 

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from dvr.extract import footprint_occupancy, refine_vertices
-from dvr.fields import Field, evaluate_in_chunks
+from dvr.fields import Field, central_difference_gradient, evaluate_in_chunks
 from pipeline.texture.atlas import dilate_gutter, rasterize_atlas, texel_geometry
 
 LogitFn = Callable[[torch.Tensor], torch.Tensor]
@@ -123,7 +123,7 @@ def field_normals(logit_fn: LogitFn, points: np.ndarray, mesh_normals: np.ndarra
     p = torch.from_numpy(np.ascontiguousarray(points, np.float32))
     moved = refine_vertices(logit_fn, p, steps, cell)
     with torch.no_grad():
-        g = evaluate_in_chunks(lambda q: _central_gradient(logit_fn, q, cell), moved, chunk, (3,))
+        g = evaluate_in_chunks(lambda q: central_difference_gradient(logit_fn, q, cell), moved, chunk, (3,))
         f = evaluate_in_chunks(logit_fn, moved, chunk)
     g, f = g.double().numpy(), f.double().numpy()
     slope = np.linalg.norm(g, axis=1)
@@ -132,13 +132,6 @@ def field_normals(logit_fn: LogitFn, points: np.ndarray, mesh_normals: np.ndarra
     sure = (np.isfinite(n).all(1) & (dist <= 2 * cell) & (slope > 1e-6) & (np.abs(f) <= 0.1 * slope * cell)
             & ((n * mesh_normals).sum(1) >= np.cos(np.radians(75))))
     return np.where(sure[:, None], n, mesh_normals), sure
-
-
-def _central_gradient(logit_fn: LogitFn, p: torch.Tensor, h: float) -> torch.Tensor:
-    """∇f at points p (m, 3) by central differences of step ``h``."""
-    offs = torch.eye(3, dtype=p.dtype, device=p.device) * h
-    v = logit_fn(torch.cat([p + o for o in offs] + [p - o for o in offs])).view(6, -1)
-    return ((v[:3] - v[3:]) / (2 * h)).T
 
 
 def hemisphere_directions(n: int) -> np.ndarray:
@@ -234,10 +227,10 @@ def surface_field(field: Field, field_frame: np.ndarray | None, footprint: float
     scale = abs(float(np.linalg.det(frame[:3, :3]))) ** (1.0 / 3.0)
     res = getattr(field, "grid_resolution", None) or 256
     device = next(field.parameters()).device
+    m = inv.to(device)
 
     def logit(p: torch.Tensor) -> torch.Tensor:
         """The logits at points ``p`` of the mesh's frame, computed on the field's device, returned on ``p``'s."""
-        m = inv.to(device)
         q = p.to(device=device, dtype=torch.float32)
         return occupancy(q @ m[:3, :3].T + m[:3, 3]).to(p.device)
 
