@@ -130,8 +130,11 @@ def sfm_budget(cfg: CamerasConfig, n_photos: int) -> float:
 def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     """The SfM ladder, within its time budget (:func:`sfm_budget`): the first rung always finishes (its mapper stops
     at the budget's end, or after half the budget when that is later), later rungs run in what is left of it, each
-    only when its features and matches, estimated from the last rung that made its own
-    (:func:`pipeline.cameras.sfm.rung_seconds`), leave it time to map.
+    only when its features, matches and mapping, estimated from the last rung that made its own
+    (:func:`pipeline.cameras.sfm.rung_seconds`), fit in what is left. At the first rung that does not fit, and when
+    the ladder ends, COLMAP's global mapper maps the matches of the incremental mapper's best model when that leaves
+    out photos with matches (:func:`_mapped_globally`); a model from it that is enough ends the ladder, and merging
+    continues from it.
     Returns (model as mapped, folder of the images SfM saw, its COLMAP database, the rung's name, summary of the
     rungs tried)."""
     with heartbeat(f"cameras: reading the {len(photos)} photos"):
@@ -142,7 +145,7 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     work.mkdir()
     budget = sfm_budget(cfg, len(names))
     deadline = time.time() + budget
-    tried, best, rejected, measured, made_by = [], None, {}, None, {}
+    tried, best, rejected, measured, made_by, globalled = [], None, {}, None, {}, set()
     rungs = ladder(cfg.start_rung, cfg.last_rung, cfg.max_features, cfg.max_h_inlier_ratio, len(names), sfm_side,
                    cfg.pair_neighbours, cfg.sift_upsample_below)
     rungs = _upsampled_when_weak(rungs, work, inp, names, cfg)
@@ -160,10 +163,15 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
             tried += [{"rung": r, "skipped": "time budget spent"} for r in left]
             break
         need, left = (0.0 if measured is None else rung_seconds(*measured, rung)), deadline - time.time()
-        if step > 0 and need > left - MIN_RUNG_SECONDS:  # it would not get to its mapping
-            why = f"its features and matches would take about {need:.0f} s, {left:.0f} s of the SfM time budget left"
+        if step > 0 and need > left - MIN_RUNG_SECONDS:  # it would not finish its mapping
+            why = f"its features, matches and mapping would take about {need:.0f} s, {left:.0f} s of the SfM time "\
+                  "budget left"
             print(f"cameras: rung {rung.name} not tried: {why}")
             tried.append({"rung": rung.name, "skipped": why})
+            if best is not None:  # the matches there are, mapped by the global mapper before any merging
+                best, short = _mapped_globally(best, made_by, globalled, work, inp, groups, cfg, names, budget, tried)
+                if short == []:
+                    break
             continue
         t0 = time.perf_counter()
         rec, database, secs, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed,
@@ -180,12 +188,8 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
         best = _better(best, judged[0], rec, rung, database)
         if not judged[1]:
             break
-    source = None if best is None else made_by.get(best.database, best.rung)  # a merged model: its matches' rung
-    if best is not None and cfg.global_mapper and source.mapper == "incremental" and \
-            matched_but_left_out(best.model, best.database):  # the ladder is over; the model lacks posable photos
-        again = _global_on_same_matches(work, inp, groups, source, cfg, names, budget, tried)
-        if again is not None:
-            best = _better(best, *again)
+    if best is not None:  # the ladder is over
+        best, _ = _mapped_globally(best, made_by, globalled, work, inp, groups, cfg, names, budget, tried)
     _require_credible(None if best is None else best.model, rejected, inp, len(names), cfg.min_registered_fraction)
     return best.model, inp, best.database, best.rung.name, tried
 
@@ -257,18 +261,34 @@ def _better(best: _Kept | None, stats: dict, rec, rung: Rung, database: Path) ->
     return new if best is None or (new.registered, -new.error) > (best.registered, -best.error) else best
 
 
+def _mapped_globally(best: _Kept, made_by: dict, globalled: set, work: Path, inp: Path, groups: list[list[str]],
+                     cfg: CamerasConfig, names: list[str], budget: float, tried: list) -> tuple[_Kept, list | None]:
+    """The ladder's ``best`` model, or the global mapper's model of the same matches when it poses more
+    (:func:`_global_on_same_matches`, stopped past half the ``budget``), and why that one is short (None: not run
+    or rejected). It runs with ``cfg.global_mapper`` when the incremental mapper made ``best`` (or the model it was
+    merged from: ``made_by``, database → rung), that model leaves out photos with matches, and the global mapper has
+    not mapped these matches yet (``globalled``, the matches' keys, is updated)."""
+    source = made_by.get(best.database, best.rung)
+    if not cfg.global_mapper or source.mapper != "incremental" or source.matches_key in globalled or \
+            not matched_but_left_out(best.model, best.database):
+        return best, None
+    globalled.add(source.matches_key)
+    again = _global_on_same_matches(work, inp, groups, source, cfg, names, time.time() + budget / 2, tried)
+    return (best, None) if again is None else (_better(best, *again[:4]), again[4])
+
+
 def _global_on_same_matches(work: Path, inp: Path, groups: list[list[str]], rung: Rung, cfg: CamerasConfig,
-                            names: list[str], budget: float, tried: list):
+                            names: list[str], deadline: float, tried: list):
     """COLMAP's global mapper on the features and matches of the incremental ``rung`` (reused, not made again),
-    judged against the models the incremental mapper made of them (:func:`_judge`); stopped when it runs past half
-    the ladder's ``budget``. Returns (stats, model, its rung, database) or None."""
+    judged against the models the incremental mapper made of them (:func:`_judge`); stopped at ``deadline``
+    (time.time()). Returns (stats, model, its rung, database, why it is short) or None."""
     t0 = time.perf_counter()
     again = replace(rung, name=f"{rung.name}-global", mapper="global")
     rec, database, steps, err = run_rung(work, inp, groups, again, cfg.camera_model, cfg.matching, cfg.seed, None,
-                                         sfm_threads(cfg), time.time() + budget / 2)
+                                         sfm_threads(cfg), deadline)
     judged = _judge(rec, again.name, time.perf_counter() - t0, steps, err, inp, names, cfg, None, tried,
                     incremental_models(work / rung.name / "models"))
-    return None if judged is None else (judged[0], rec, again, database)
+    return None if judged is None else (judged[0], rec, again, database, judged[1])
 
 
 def matched_but_left_out(rec, database: Path) -> list[str]:

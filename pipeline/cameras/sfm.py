@@ -134,15 +134,16 @@ UPSAMPLE_COST = 3.0
 """SIFT on the photos upsampled twice takes about this many times as long (the blowtorch's 67 photos: 170 s, 57 s)."""
 DSP_COST = 3.0
 """DSP-SIFT with affine shapes takes about this many times plain SIFT's time."""
-GUIDED_COST = 2.0
+GUIDED_COST = 3.5
 """Guided matching takes about this many times plain matching's time at the same features (the blowtorch's 589
-pairs of 7168 features: about 200 s, where 4096 features take 35 s unguided)."""
+pairs of 7168 features: over 240 s, its last blocks 65 s and more each, where 4096 features take 23.5 s unguided)."""
 
 
 def rung_seconds(done: Rung, steps: dict, nxt: Rung) -> float:
-    """Seconds the rung ``nxt`` will take for the features and matches it does not share with the rung ``done``,
-    whose steps took ``steps`` seconds (``features``, ``matching``): features in proportion to SIFT's work, matches
-    to the features' count squared (every feature of one photo against every one of the other's)."""
+    """Seconds the rung ``nxt`` will take, estimated from the rung ``done``, whose steps took ``steps`` seconds
+    (``features``, ``matching``, ``mapping``): the features and matches it does not share with ``done``, features in
+    proportion to SIFT's work, matches to the features' count squared (every feature of one photo against every one
+    of the other's), and its mapping in proportion to the features."""
     if nxt.mapper == "extend":  # continues from a model with its own features and matches
         return 0.0
     features = 0.0
@@ -153,7 +154,7 @@ def rung_seconds(done: Rung, steps: dict, nxt: Rung) -> float:
     if nxt.matches_key != done.matches_key:
         matching = steps.get("matching", 0.0) * (nxt.max_features / done.max_features) ** 2 * (
             GUIDED_COST ** (nxt.guided - done.guided))
-    return features + matching
+    return features + matching + steps.get("mapping", 0.0) * nxt.max_features / done.max_features
 
 
 # ----------------------------------------------------------------------------- one rung (child process)
