@@ -178,13 +178,38 @@ def coarse_points(lattice: np.ndarray, res: int) -> np.ndarray:
     return lattice[np.ix_(sel, sel, sel)]
 
 
+def settled_onto_plane(inside: np.ndarray, ground: np.ndarray, height: float) -> np.ndarray:
+    """The bool lattice ``inside`` ((res+1)³ over [-1, 1]³, :func:`grid_points`) with the space under each of its
+    points less than ``height`` above the plane ``ground`` filled down to the plane, along the plane's normal: an
+    object resting on a support reaches it. (Masks lose a shiny object's lowest band, which mirrors the floor, and
+    the hull then floats it a little above its support.) A point higher up keeps the space under it free: the floor
+    under a table's top or between a cow's legs."""
+    res = inside.shape[0] - 1
+    pts = grid_points(res, dtype=torch.float64).numpy()
+    h = plane_height(ground, pts)
+    low = inside.reshape(-1) & (h > 0) & (h < height)
+    p, hp = pts[low], h[low]
+    normal = np.asarray(ground[:3], float)
+    step = 1.0 / res  # half a lattice spacing: every lattice point on the way down is met
+    out = inside.copy()
+    for k in range(1, int(np.ceil(height / step)) + 1):
+        q = p - normal * np.minimum(k * step, hp)[:, None]
+        idx = np.rint((q + 1.0) * (res / 2.0)).astype(int)
+        ok = ((idx >= 0) & (idx <= res)).all(1)
+        out[idx[ok, 0], idx[ok, 1], idx[ok, 2]] = True
+    return out
+
+
 def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, slope_cells: float = 1.0, clamp: float = 10.0,
-                keep: np.ndarray | None = None, **rules) -> torch.Tensor:
+                keep: np.ndarray | None = None, settle: float = 0.0, **rules) -> torch.Tensor:
     """Logit volume (res+1)³ [x, y, z] of the visual hull (:func:`hull_inside`, :func:`inside_logits`; ``rules``:
     :func:`outside_hull`'s keyword arguments); points outside the unit sphere (or below the support plane
     ``ground``) are free, except the cells holding the points ``keep`` (M, 3), which stay inside whatever the masks
-    say (:func:`lattice_corners`). Returns a float32 tensor on masks' device."""
+    say (:func:`lattice_corners`); with a ``ground`` plane and ``settle`` > 0, the hull's parts lower than that
+    rest on it (:func:`settled_onto_plane`). Returns a float32 tensor on masks' device."""
     inside = hull_inside(P, masks, res, **rules)
+    if settle > 0 and rules.get("ground") is not None:
+        inside = settled_onto_plane(inside, rules["ground"], settle)
     if keep is not None and len(keep):
         inside[lattice_corners(keep, res)] = True
     return inside_logits(inside, slope_cells, clamp, device=masks.device)

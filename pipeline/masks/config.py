@@ -19,6 +19,8 @@ class MasksConfig:
     """A point is background only when this share of the views that see it, too, see it outside their mask; 0: off."""
     keep_min_views: int = 3
     """No visual hull carves a sparse point inside the object's sphere that this many views observe; 0: off."""
+    settle_height: float = 0.08
+    """The hull's parts lower than this above the support plane (unit-sphere radii) rest on it; 0: off."""
     vote_rounds: int = 2
     """Rounds of multi-view voting: the hull of the current masks, then GrabCut inside its silhouette."""
     floor_rounds: int = 6

@@ -279,22 +279,23 @@ def kept_points(pts_n: np.ndarray | None, obs: dict | None, cams: Cameras, min_v
 
 @torch.no_grad()
 def visual_hull(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
-                min_fraction: float = 0.0, keep: np.ndarray | None = None) -> torch.Tensor:
+                min_fraction: float = 0.0, keep: np.ndarray | None = None, settle: float = 0.0) -> torch.Tensor:
     """:func:`dvr.hull.hull_logits` of ``masks`` (one bool array per view, each its own size; carving with
     ``min_views`` and ``min_fraction``; nothing below the support plane); the cells holding the points ``keep``
-    (:func:`kept_points`) stay inside."""
+    (:func:`kept_points`) stay inside, and its parts lower than ``settle`` above the support plane rest on it
+    (:func:`dvr.hull.settled_onto_plane`)."""
     canvas, sizes = pad_stack([m.astype(np.float32) for m in masks])
     return hull_logits(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res=res, min_views=min_views,
                        min_fraction=min_fraction, slope_cells=1.0, ground=cams.ground, sizes=torch.from_numpy(sizes),
-                       keep=keep)
+                       keep=keep, settle=settle)
 
 
 @torch.no_grad()
 def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
                      logits: torch.Tensor | None = None, min_fraction: float = 0.0,
-                     keep: np.ndarray | None = None) -> list[np.ndarray]:
-    """Render the visual hull of ``masks`` (:func:`visual_hull`, holding the points ``keep``; its ``logits`` when
-    already built) into every view: one bool array per view.
+                     keep: np.ndarray | None = None, settle: float = 0.0) -> list[np.ndarray]:
+    """Render the visual hull of ``masks`` (:func:`visual_hull`, holding the points ``keep``, resting on the support
+    where lower than ``settle``; its ``logits`` when already built) into every view: one bool array per view.
 
     The hull's logit volume becomes a mesh (marching cubes) and the ray of every pixel centre in the box of its
     projection is cast against it (:meth:`pipeline.render.raycast.MeshCaster.covered_pixels`), far faster than
@@ -303,7 +304,8 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     import trimesh
     from skimage import measure
 
-    lg = (visual_hull(masks, cams, res, min_views, min_fraction, keep) if logits is None else logits).cpu().numpy()
+    lg = (visual_hull(masks, cams, res, min_views, min_fraction, keep, settle) if logits is None else logits
+          ).cpu().numpy()
     if lg.max() <= 0 or lg.min() > 0:
         return [np.full(m.shape, lg.min() > 0) for m in masks]
     v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
@@ -414,7 +416,8 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     first_hull = None  # built once when the footprint and the first vote both need it
     # the footprint of the first masks' hull: alone (too few points), or united with the points' prism
     if (used is False or unite) and cfg.footprint_hull_height > 0:
-        first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction, keep)
+        first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction, keep,
+                                 cfg.settle_height)
         from_hull = hull_footprint(first, cams, cfg, first_hull)
         if unite:
             footprint, used = united_footprint(footprint, from_hull), "sparse points and masks' hull"
@@ -485,7 +488,7 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
     current, sil, changed = start, [], []
     for rnd in range(rounds):
         sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views, first_hull if rnd == 0 else None,
-                               cfg.carve_fraction, keep)
+                               cfg.carve_fraction, keep, cfg.settle_height)
         labs = [vote_labels(seeds[i], sil[i], kernel) for i in range(len(imgs))]
         if sal is not None:  # a probable start inside the hull's bound, never past it
             labs = [vote_prior(lab, s) for lab, s in zip(labs, sal)]

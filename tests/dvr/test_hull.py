@@ -246,3 +246,28 @@ def test_lattice_corners_of_a_point_are_its_cells_eight():
     i, j, k = lattice_corners(np.array([[0.01, -0.01, 0.99], [1.5, 0.0, 0.0]]), 4)
     assert sorted(zip(i.tolist(), j.tolist(), k.tolist())) == sorted(
         (2 + a, 1 + b, 3 + c) for a in (0, 1) for b in (0, 1) for c in (0, 1))
+
+
+def test_settled_onto_plane_fills_under_low_points_only_down_to_a_tilted_plane():
+    """settled_onto_plane: under an inside lattice point 0.2 above a tilted plane, the lattice points along the
+    plane's normal down to the plane fill (none below it); under a point 0.6 above it, nothing; without a low point
+    the lattice is returned as it was."""
+    from dvr.cameras import plane_height
+    from dvr.hull import grid_points, settled_onto_plane
+
+    res = 32
+    normal = np.array([0.6, 0.0, 0.8])
+    ground = np.array([*normal, 0.5])  # height = n·x + 0.5
+    pts = grid_points(res, dtype=torch.float64).numpy()
+    h = plane_height(ground, pts)
+    low = np.argmin(np.abs(h - 0.2) + np.linalg.norm(pts[:, :2], axis=1))  # a lattice point 0.2 above, near the axis
+    high = np.argmin(np.abs(h - 0.6) + np.linalg.norm(pts[:, :2] - 0.3, axis=1))
+    inside = np.zeros((res + 1,) * 3, bool)
+    inside.reshape(-1)[[low, high]] = True
+    out = settled_onto_plane(inside, ground, 0.3)
+    added = pts[out.reshape(-1) & ~inside.reshape(-1)]
+    assert len(added) >= 3
+    assert (plane_height(ground, added) >= -1.0 / res).all() and (plane_height(ground, added) < h[low]).all()
+    off_axis = added - pts[low] - np.outer((added - pts[low]) @ normal, normal)  # straight under the low point
+    assert np.linalg.norm(off_axis, axis=1).max() <= np.sqrt(3) / res
+    assert np.array_equal(settled_onto_plane(inside, ground, 0.15), inside)  # both points higher than that
