@@ -74,9 +74,13 @@ def floaters(verts: np.ndarray, faces: np.ndarray, points: np.ndarray, ratio: fl
 
 
 def _make_closed(ms) -> None:
-    """Split non-manifold edges and vertices, then close the small holes that leaves (and any others)."""
+    """Merge the vertices a millionth of the mesh's diagonal apart or closer (what a loader that merges vertices by
+    position does), split non-manifold edges and vertices, then close the small holes that leaves (and any others)."""
     import pymeshlab
 
+    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(1e-4))
+    ms.meshing_remove_null_faces()
+    ms.meshing_remove_duplicate_faces()
     ms.meshing_repair_non_manifold_edges()
     ms.meshing_repair_non_manifold_vertices()
     try:
@@ -87,11 +91,37 @@ def _make_closed(ms) -> None:
     ms.meshing_remove_unreferenced_vertices()
 
 
+PINCH_APART = 1e-3
+"""Vertices that share a position move this fraction of the mesh's mean edge length apart (:func:`pinches_apart`)."""
+
+
+def pinches_apart(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``verts`` with the vertices that share a position (within a millionth of the mesh's diagonal) moved into the
+    mesh along their own normals by :data:`PINCH_APART` of the mean edge length. Splitting a non-manifold edge (two
+    sheets an edge collapse pinched together) leaves two copies of its vertices at one place: closed as stored, but
+    every tool that merges vertices by position (trimesh's loader, a slicer) joins them again into an edge of four
+    faces, an open mesh."""
+    from scipy.spatial import cKDTree
+
+    if len(faces) == 0:
+        return verts
+    mesh = trimesh.Trimesh(verts, faces, process=False)
+    edge = float(mesh.edges_unique_length.mean())
+    pairs = cKDTree(verts).query_pairs(1e-6 * float(np.linalg.norm(np.ptp(verts, axis=0))), output_type="ndarray")
+    if len(pairs) == 0:
+        return verts
+    moved = np.unique(pairs)
+    out = verts.copy()
+    out[moved] -= PINCH_APART * edge * mesh.vertex_normals[moved]
+    return out
+
+
 def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig,
                points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     """Small components, duplicates, degenerate faces, non-manifold edges, small holes, smoothing, decimation, small
     components again (the repairs can split some off), then the pieces that none of the SfM ``points`` (mesh frame;
-    None: none known) lies on (:func:`floaters`). Returns (vertices, faces, the dropped floaters)."""
+    None: none known) lies on (:func:`floaters`), and the split vertices moved apart (:func:`pinches_apart`).
+    Returns (vertices, faces, the dropped floaters)."""
     import pymeshlab  # here, not at the top: the config tree (and a GPU machine's train stage) imports this module
 
     ms = pymeshlab.MeshSet()
@@ -123,7 +153,7 @@ def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig,
         f = f[keep]
     m = trimesh.Trimesh(v, f, process=False)
     m.remove_unreferenced_vertices()
-    return np.asarray(m.vertices), np.asarray(m.faces), dropped
+    return pinches_apart(np.asarray(m.vertices), np.asarray(m.faces)), np.asarray(m.faces), dropped
 
 
 def _drop_unseen(ws, verts: np.ndarray, faces: np.ndarray, scale_mat: np.ndarray, cfg: MeshConfig,

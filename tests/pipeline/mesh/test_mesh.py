@@ -57,6 +57,26 @@ def test_make_closed_splits_an_edge_shared_by_four_faces():
     assert out.is_watertight and len(out.faces) >= 24
 
 
+def test_split_vertices_move_apart_so_a_merging_loader_sees_a_closed_mesh():
+    """The two boxes split apart along their shared edge keep two copies of its vertices at one place: a loader that
+    merges vertices by position (trimesh's default, as a slicer's) joins them into an edge of four faces again.
+    pinches_apart moves only those copies, a thousandth of an edge into their own box; a mesh without them comes
+    back as it was."""
+    from pipeline.mesh.stage import PINCH_APART, pinches_apart
+
+    a = trimesh.creation.box(bounds=[[0, 0, 0], [1, 1, 1]])
+    b = trimesh.creation.box(bounds=[[1, 1, 0], [2, 2, 1]])
+    split = trimesh.util.concatenate([a, b])  # closed as stored, four vertices at the two ends of the shared edge
+    assert split.is_watertight and not trimesh.Trimesh(split.vertices, split.faces).is_watertight
+    v = pinches_apart(np.asarray(split.vertices), np.asarray(split.faces))
+    assert trimesh.Trimesh(v, split.faces).is_watertight  # merged on loading: still closed
+    moved = np.linalg.norm(v - split.vertices, axis=1)
+    assert (moved > 0).sum() == 4 and moved.max() <= 2 * PINCH_APART  # the copies, and no more than a hair
+    assert trimesh.Trimesh(v[:8], split.faces[:12]).contains([[0.5, 0.5, 0.5]])[0]  # still a box round its centre
+    assert a.contains(v[:8][moved[:8] > 0]).all()  # moved into their own box
+    assert np.array_equal(pinches_apart(np.asarray(a.vertices), np.asarray(a.faces)), a.vertices)
+
+
 def _house_and_slab(n_points=2000, slab_density=0.0, seed=0):
     """A sphere of radius 0.5 (the object) with ``n_points`` points on its surface, and a disc-like slab of radius
     0.2 floating above it carrying ``slab_density`` × the sphere's density of points."""
