@@ -73,12 +73,17 @@ def floaters(verts: np.ndarray, faces: np.ndarray, points: np.ndarray, ratio: fl
                    "expected": round(float(expected[c]), 1)} for c in np.flatnonzero(drop)]
 
 
+SAME_POSITION = 1e-6
+"""Vertices closer than this fraction of the mesh's diagonal stand at one position (what a loader that merges
+vertices by position joins): :func:`_make_closed` merges them, :func:`pinches_apart` finds the copies a split left."""
+
+
 def _make_closed(ms) -> None:
-    """Merge the vertices a millionth of the mesh's diagonal apart or closer (what a loader that merges vertices by
-    position does), split non-manifold edges and vertices, then close the small holes that leaves (and any others)."""
+    """Merge the vertices at one position (:data:`SAME_POSITION`: what a loader that merges vertices by position
+    does), split non-manifold edges and vertices, then close the small holes that leaves (and any others)."""
     import pymeshlab
 
-    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(1e-4))
+    ms.meshing_merge_close_vertices(threshold=pymeshlab.PercentageValue(100 * SAME_POSITION))
     ms.meshing_remove_null_faces()
     ms.meshing_remove_duplicate_faces()
     ms.meshing_repair_non_manifold_edges()
@@ -96,23 +101,23 @@ PINCH_APART = 1e-3
 
 
 def pinches_apart(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """``verts`` with the vertices that share a position (within a millionth of the mesh's diagonal) moved into the
-    mesh along their own normals by :data:`PINCH_APART` of the mean edge length. Splitting a non-manifold edge (two
-    sheets an edge collapse pinched together) leaves two copies of its vertices at one place: closed as stored, but
-    every tool that merges vertices by position (trimesh's loader, a slicer) joins them again into an edge of four
-    faces, an open mesh."""
+    """``verts`` with the vertices that share a position (:data:`SAME_POSITION`) moved into the mesh along their own
+    normals by :data:`PINCH_APART` of the mean edge length. Splitting a non-manifold edge (two sheets an edge
+    collapse pinched together) leaves two copies of its vertices at one place: closed as stored, but every tool that
+    merges vertices by position (trimesh's loader, a slicer) joins them again into an edge of four faces, an open
+    mesh."""
     from scipy.spatial import cKDTree
 
     if len(faces) == 0:
         return verts
-    mesh = trimesh.Trimesh(verts, faces, process=False)
-    edge = float(mesh.edges_unique_length.mean())
-    pairs = cKDTree(verts).query_pairs(1e-6 * float(np.linalg.norm(np.ptp(verts, axis=0))), output_type="ndarray")
-    if len(pairs) == 0:
+    diagonal = float(np.linalg.norm(np.ptp(verts, axis=0)))
+    pairs = cKDTree(verts).query_pairs(SAME_POSITION * diagonal, output_type="ndarray")
+    if len(pairs) == 0:  # the edge lengths and normals serve only to move copies
         return verts
+    mesh = trimesh.Trimesh(verts, faces, process=False)
     moved = np.unique(pairs)
     out = verts.copy()
-    out[moved] -= PINCH_APART * edge * mesh.vertex_normals[moved]
+    out[moved] -= PINCH_APART * float(mesh.edges_unique_length.mean()) * mesh.vertex_normals[moved]
     return out
 
 
