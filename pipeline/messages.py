@@ -36,8 +36,9 @@ def size_in_words(size: dict, metric: bool) -> str:
 
 
 def say_now(line: str) -> None:
-    """Print a progress line at once (stdout may be a file, block-buffered)."""
-    print(line, flush=True)
+    """Print a progress line at once (stdout may be a file, block-buffered), in one write: lines from threads working
+    side by side do not run into each other."""
+    print(line + "\n", end="", flush=True)
 
 
 def minutes(seconds: float) -> str:

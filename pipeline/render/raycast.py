@@ -31,7 +31,7 @@ class MeshCaster:
     def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The nearest hit of each ray that meets the mesh: (ray index, face index, point), one row per ray."""
         loc, ray, face = self._inter.intersects_location(origins, dirs, multiple_hits=False)
-        if len(ray) and len(np.unique(ray)) < len(ray):  # a ray reported twice: keep its nearest hit
+        if len(ray) and np.bincount(ray).max() > 1:  # a ray reported twice: keep its nearest hit
             dist = ((loc - origins[ray]) * dirs[ray]).sum(1)
             order = np.lexsort((dist, ray))
             keep = order[np.r_[True, ray[order][1:] != ray[order][:-1]]]
@@ -48,12 +48,18 @@ class MeshCaster:
 
     def depth_map(self, K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int, height: int) -> np.ndarray:
         """(height, width) ray depth (distance along the unit ray) of the first hit through every pixel centre of a
-        pinhole camera (K, world→camera rotation R, camera centre); inf where the ray meets nothing."""
-        o, d = pixel_center_rays(K, R, center, width, height)
-        ray, _, loc = self.first_hits(o, d)
-        depth = np.full(len(d), np.inf)
-        depth[ray] = np.linalg.norm(loc - o[ray], axis=1)
-        return depth.reshape(height, width)
+        pinhole camera (K, world→camera rotation R, camera centre); inf where the ray meets nothing. Only the rays
+        of :func:`projected_box` are cast (all when it bounds nothing)."""
+        box = projected_box(self.mesh.vertices, K, R, center, width, height)
+        y0, y1, x0, x1 = (0, height, 0, width) if box is None else box
+        depth = np.full((height, width), np.inf)
+        if y1 > y0 and x1 > x0:
+            o, d = pixel_center_rays(K, R, center, width, height, (y0, y1, x0, x1))
+            ray, _, loc = self.first_hits(o, d)
+            inside = np.full(len(d), np.inf)
+            inside[ray] = np.linalg.norm(loc - o[ray], axis=1)
+            depth[y0:y1, x0:x1] = inside.reshape(y1 - y0, x1 - x0)
+        return depth
 
     def covered_pixels(self, K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int, height: int) -> np.ndarray:
         """(height, width) bool: the pixels whose centre's ray meets the mesh; only the rays of

@@ -17,6 +17,14 @@ def filling_density(side: float, area: float) -> float:
     return side * float(np.sqrt(ATLAS_UTILISATION / max(area, 1e-12)))
 
 
+PIECE_FACES = 40_000
+"""A mesh of at least twice as many faces is charted as pieces of about this many faces each (:func:`split_faces`),
+which xatlas charts side by side on all cores and, each chart growing within a smaller piece, in less time: DTU's
+250 k-face level in 10.0 s instead of 23.5 (6 pieces), its 338 k-face raw level in 16.7 s instead of 51.6 (8), at the
+same atlas utilisation."""
+
+MAX_PIECES = 16
+
 RECHART_FACES = 100_000
 """Meshes of more faces are not charted again when their atlas comes out past the largest side: charting again
 costs as much as the first time (DTU's 338 k-face raw level: 46 s a time), and the atlas is scaled onto the side."""
@@ -43,11 +51,14 @@ def make_atlas(verts: np.ndarray, faces: np.ndarray, density: float, padding: in
     po = xatlas.PackOptions()
     po.padding = padding
     po.bilinear = True
-    verts32, faces32 = verts.astype(np.float32), faces.astype(np.uint32)
+    verts32 = verts.astype(np.float32)
+    pieces = split_faces(verts, faces, min(MAX_PIECES, max(1, len(faces) // PIECE_FACES)))
+    local = [np.unique(faces[p], return_inverse=True) for p in pieces]  # each piece's vertices, its faces into them
     for _ in range(3):
         po.texels_per_unit = float(density)
         atlas = xatlas.Atlas()
-        atlas.add_mesh(verts32, faces32)
+        for used, corners in local:
+            atlas.add_mesh(verts32[used], corners.reshape(-1, 3).astype(np.uint32))
         atlas.generate(co, po)
         w, h = atlas.width, atlas.height
         side = max(w, h)
@@ -55,9 +66,41 @@ def make_atlas(verts: np.ndarray, faces: np.ndarray, density: float, padding: in
             break
         # the atlas's side scales about linearly with the density; 2 % inside the bound leaves room for the packing
         density *= (0.98 * max_side if side > max_side else 1.02 * min_side) / side
-    vmap, idx, uvs = atlas[0]
+    vmap, idx, uvs = _joined(atlas, local, pieces)
     uvs = uvs.astype(np.float64) * np.array([w, h]) / side
-    return vmap, idx.astype(np.int64), uvs, int(min(side, max_side))
+    return vmap, idx, uvs, int(min(side, max_side))
+
+
+def split_faces(verts: np.ndarray, faces: np.ndarray, n: int) -> list[np.ndarray]:
+    """The faces' indices cut into ``n`` pieces of equal counts (± 1), each piece a box of space: a piece meant to
+    hold k pieces is cut across its longest side at the face centres' k // 2 : k − k // 2 quantile, each side cut
+    again the same way."""
+    centres = np.asarray(verts, np.float64)[np.asarray(faces)].mean(1)
+
+    def cut(piece: np.ndarray, k: int) -> list[np.ndarray]:
+        if k <= 1:
+            return [np.sort(piece)]
+        axis = int(np.argmax(np.ptp(centres[piece], axis=0)))
+        order = piece[np.argsort(centres[piece, axis], kind="stable")]
+        at = round(len(order) * (k // 2) / k)
+        return cut(order[:at], k // 2) + cut(order[at:], k - k // 2)
+
+    return cut(np.arange(len(faces)), max(1, n))
+
+
+def _joined(atlas, local: list[tuple[np.ndarray, np.ndarray]], pieces: list[np.ndarray]):
+    """One mesh from xatlas's charted pieces: (vmapping into the whole mesh's vertices, faces in the whole mesh's
+    order into the new vertices, uvs)."""
+    vmaps, corner_rows, uvs, start = [], [], [], 0
+    for i, (used, _) in enumerate(local):
+        vmap, idx, uv = atlas[i]
+        vmaps.append(used[vmap])
+        corner_rows.append(idx.astype(np.int64) + start)
+        uvs.append(uv)
+        start += len(vmap)
+    faces = np.empty((sum(len(p) for p in pieces), 3), np.int64)
+    faces[np.concatenate(pieces)] = np.concatenate(corner_rows)
+    return np.concatenate(vmaps), faces, np.concatenate(uvs)
 
 
 def rasterize_atlas(uvs: np.ndarray, faces: np.ndarray, size: int) -> np.ndarray:

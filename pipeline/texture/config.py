@@ -68,6 +68,8 @@ class TextureConfig:
     """Bake a tangent-space normal map of the trained field's normals (a light mesh shades like the full one)."""
     occlusion_reach: float = 0.2
     """Ambient-occlusion map: how far (working-sphere radii) the field is searched for what shades a point; 0: none."""
+    levels_from_photos: bool = False
+    """Bake each detail level from the photos (slower); off: a level takes the default mesh's colours."""
     frame: Literal["sfm", "normalized"] = "sfm"
     """Frame of the textured outputs: sfm (that of cameras.npz) or normalized (unit sphere)."""
     device: str = "auto"

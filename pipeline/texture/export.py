@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-import threading
+import io
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from dvr.atomic import atomic_file, export_mesh, write_text
+from dvr.atomic import export_mesh, write_bytes, write_text
 from pipeline.errors import StageError
 from pipeline.readers import load_mesh_file
 from pipeline.texture.surface_maps import SurfaceMaps
@@ -59,6 +60,32 @@ def _image(values: np.ndarray):
     return Image.fromarray((np.asarray(values).clip(0, 1) * 255).round().astype(np.uint8))
 
 
+class _EncodedPNG:
+    """A PIL image whose PNG bytes are already made: what trimesh's glTF writer asks of it (its ``format`` and its
+    ``save``) without encoding it again; every other attribute is the image's."""
+
+    format = "PNG"
+
+    def __init__(self, image, data: bytes):
+        self._image, self.data = image, data
+
+    def save(self, f, format=None) -> None:  # noqa: A002 - PIL's keyword
+        f.write(self.data)
+
+    def __getattr__(self, name: str):
+        return getattr(self._image, name)
+
+
+PNG_COMPRESSION = 4
+"""zlib level of the PNGs: 2.4 × faster to encode than PIL's default 6, for files 2-4 % larger (DTU's maps)."""
+
+
+def _png_bytes(image) -> bytes:
+    buffer = io.BytesIO()
+    image.save(buffer, format="PNG", compress_level=PNG_COMPRESSION)
+    return buffer.getvalue()
+
+
 def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: np.ndarray,
                     display: np.ndarray | None = None, normals: np.ndarray | None = None,
                     maps: SurfaceMaps | None = None) -> None:
@@ -66,55 +93,42 @@ def export_textured(out_dir: Path, verts: np.ndarray, faces: np.ndarray, uvs: np
     ``display``: the GLB's node transform (:func:`upright`; its vertices stay those given); ``normals``: unit vertex
     normals for smooth shading (else a viewer shades faces flat); ``maps``: the normal and occlusion maps
     (:data:`MAP_FILES`, in the GLB's material and the MTL; the GLB then carries the tangents they were baked in). The
-    PNGs are encoded once for the OBJ (in a thread: the encoder releases the GIL) while the GLB encodes its own."""
-    img = _image(tex)
+    PNGs are encoded once, side by side (the encoder releases the GIL), for the files and the GLB."""
     extra = {} if maps is None else {k: v for k, v in (("normal", maps.normal), ("occlusion", maps.occlusion))
                                      if v is not None}
-    images = {"textured.png": img, **{MAP_FILES[k]: _image(v) for k, v in extra.items()}}
-    png_error: list[BaseException] = []
-
-    def write_pngs():
-        try:
-            for name, image in images.items():
-                with atomic_file(out_dir / name) as f:
-                    image.save(f, format="PNG")
-            for key, name in MAP_FILES.items():  # a map not baked this time is not left from an earlier run
-                if key not in extra:
-                    (out_dir / name).unlink(missing_ok=True)
-        except BaseException as exc:  # noqa: BLE001 - raised below, in the caller's thread (a full disk)
-            png_error.append(exc)
-
-    png = threading.Thread(target=write_pngs)
-    png.start()
-    try:
-        mat = trimesh.visual.material.PBRMaterial(
-            baseColorTexture=img, metallicFactor=0.0, roughnessFactor=1.0,
-            normalTexture=images.get(MAP_FILES["normal"]), occlusionTexture=images.get(MAP_FILES["occlusion"]))
-        mesh = trimesh.Trimesh(verts, faces, visual=trimesh.visual.TextureVisuals(uv=uvs, material=mat),
+    pixels = {"textured.png": _image(tex), **{MAP_FILES[k]: _image(v) for k, v in extra.items()}}
+    with ThreadPoolExecutor(len(pixels)) as pool:
+        images = dict(zip(pixels, pool.map(lambda im: _EncodedPNG(im, _png_bytes(im)), pixels.values())))
+    for name, image in images.items():
+        write_bytes(out_dir / name, image.data)
+    for key, name in MAP_FILES.items():  # a map not baked this time is not left from an earlier run
+        if key not in extra:
+            (out_dir / name).unlink(missing_ok=True)
+    img = images["textured.png"]
+    mat = trimesh.visual.material.PBRMaterial(
+        baseColorTexture=img, metallicFactor=0.0, roughnessFactor=1.0,
+        normalTexture=images.get(MAP_FILES["normal"]), occlusionTexture=images.get(MAP_FILES["occlusion"]))
+    mesh = trimesh.Trimesh(verts, faces, visual=trimesh.visual.TextureVisuals(uv=uvs, material=mat),
+                           vertex_normals=normals, process=False)
+    if maps is not None and "normal" in extra:
+        mesh.vertex_attributes["tangent"] = np.asarray(maps.tangents, np.float32)
+    scene = trimesh.Scene()
+    scene.add_geometry(mesh, node_name="object", geom_name="textured",
+                       transform=np.eye(4) if display is None else display)
+    export_mesh(out_dir / "textured.glb", scene, tree_postprocessor=clamped_textures,
+                include_normals=normals is not None)
+    simple = trimesh.visual.material.SimpleMaterial(name="textured", diffuse=(255, 255, 255, 255),
+                                                    ambient=(255, 255, 255, 255), specular=(0, 0, 0, 255))
+    mesh_obj = trimesh.Trimesh(verts, faces, visual=trimesh.visual.TextureVisuals(uv=uvs, material=simple),
                                vertex_normals=normals, process=False)
-        if maps is not None and "normal" in extra:
-            mesh.vertex_attributes["tangent"] = np.asarray(maps.tangents, np.float32)
-        scene = trimesh.Scene()
-        scene.add_geometry(mesh, node_name="object", geom_name="textured",
-                           transform=np.eye(4) if display is None else display)
-        export_mesh(out_dir / "textured.glb", scene, tree_postprocessor=clamped_textures,
-                    include_normals=normals is not None)
-        simple = trimesh.visual.material.SimpleMaterial(name="textured", diffuse=(255, 255, 255, 255),
-                                                        ambient=(255, 255, 255, 255), specular=(0, 0, 0, 255))
-        mesh_obj = trimesh.Trimesh(verts, faces, visual=trimesh.visual.TextureVisuals(uv=uvs, material=simple),
-                                   vertex_normals=normals, process=False)
-        text, files = trimesh.exchange.obj.export_obj(mesh_obj, include_normals=normals is not None,
-                                                      include_texture=True, return_texture=True,
-                                                      mtl_name="textured.mtl")
-        mtl = next(data.decode() for name, data in files.items() if name.endswith(".mtl"))
-        lines = ["map_Kd textured.png"]  # the material's texture: textured.png
-        if "normal" in extra:  # the PBR extension of MTL (three.js's MTLLoader and tinyobjloader read it)
-            lines.append(f"norm {MAP_FILES['normal']}")
-        if "occlusion" in extra:
-            lines.append(f"map_ao {MAP_FILES['occlusion']}")
-        write_text(out_dir / "textured.mtl", mtl + "\n" + "\n".join(lines))
-        write_text(out_dir / "textured.obj", text)
-    finally:
-        png.join()
-    if png_error:
-        raise png_error[0]
+    text, files = trimesh.exchange.obj.export_obj(mesh_obj, include_normals=normals is not None,
+                                                  include_texture=True, return_texture=True,
+                                                  mtl_name="textured.mtl")
+    mtl = next(data.decode() for name, data in files.items() if name.endswith(".mtl"))
+    lines = ["map_Kd textured.png"]  # the material's texture: textured.png
+    if "normal" in extra:  # the PBR extension of MTL (three.js's MTLLoader and tinyobjloader read it)
+        lines.append(f"norm {MAP_FILES['normal']}")
+    if "occlusion" in extra:
+        lines.append(f"map_ao {MAP_FILES['occlusion']}")
+    write_text(out_dir / "textured.mtl", mtl + "\n" + "\n".join(lines))
+    write_text(out_dir / "textured.obj", text)

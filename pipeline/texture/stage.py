@@ -13,12 +13,18 @@
    mip-maps do not bleed background into the surface.
 5. From the trained occupancy field: a tangent-space normal map of its own normals and an ambient-occlusion map
    (:mod:`pipeline.texture.surface_maps`), written beside the texture and into the GLB, MTL and USDZ.
+6. Each detail level gets an atlas of its own and takes its colours, normals and occlusion from the default mesh's
+   texture and maps (:mod:`pipeline.texture.transfer`), textured two at a time beside the default mesh.
 """
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -30,7 +36,7 @@ from dvr.device import resolve_device
 from dvr.fields import Field, evaluate_in_chunks
 from pipeline.errors import StageError
 from pipeline.mesh.levels import level_folder
-from pipeline.messages import heartbeat, size_in_words
+from pipeline.messages import heartbeat, say_now, size_in_words
 from pipeline.readers import load_mesh_file, mesh_units, read_model
 from pipeline.render.raycast import MeshCaster
 from pipeline.texture.appearance import photos_for_bake
@@ -45,8 +51,17 @@ from pipeline.texture.blend import TexelSurface, bake
 from pipeline.texture.config import TextureConfig
 from pipeline.texture.export import export_textured
 from pipeline.texture.surface_maps import SurfaceField, bake_surface_maps, surface_field
+from pipeline.texture.transfer import BakedMesh, carried, carried_uvs
 from pipeline.texture.usdz import export_usdz
 from pipeline.workspace import Done, Job
+
+CARRY_REACH = 2 / 128
+"""How far (working-sphere radii) a detail level's surface may lie from the default mesh's where it takes its colour
+when no trained field gives the grid's cell."""
+
+BAKES_AT_ONCE = 2
+"""Detail levels textured at once, beside the default mesh (one bake keeps two cores busy only part of its time:
+xatlas's packing, the PNG encoding and much of the bookkeeping run on one)."""
 
 
 def depth_maps(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int, int]]) -> list[np.ndarray]:
@@ -110,35 +125,65 @@ def texels_per_unit(mesh: trimesh.Trimesh, cams: Cameras, sizes: list[tuple[int,
     return tpu if tpu > 0 else filling_density(cfg.size, mesh.area)
 
 
+@dataclass
+class Carry:
+    """What a detail level takes from the default mesh's texture instead of baking the photos again
+    (:mod:`pipeline.texture.transfer`)."""
+
+    source: Callable[[], BakedMesh]
+    """The default mesh textured (the call may wait for its bake)."""
+    texels_per_unit: float
+    """The default mesh's atlas density (:func:`texels_per_unit`): the same surface seen by the same photos."""
+    reach: float
+    """How far apart the two surfaces may lie (:func:`pipeline.texture.transfer.carried_uvs`)."""
+
+
 def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray], cams: Cameras, cfg: TextureConfig,
                  field: Field | None = None, field_frame: np.ndarray | None = None,
                  field_gain: np.ndarray | None = None, clipped: list[np.ndarray] | None = None,
-                 occupancy: SurfaceField | None = None):
+                 occupancy: SurfaceField | None = None, carry: Carry | None = None):
     """Normalized-frame mesh → (new verts, new faces, uvs, texture (side, side, 3) float, stats); the side follows
     the photos' resolution on the object (:func:`texels_per_unit`). ``field_gain``: see :func:`fill_unseen`;
     ``clipped``: the photos' over-exposed pixels (:func:`pipeline.texture.blend.clipped_pixels` of the photos as taken,
     before :func:`undo_appearance`), down-weighted by ``clipped_weight``; default: none. ``stats["normals"]``: the new
     vertices' unit normals; with the trained ``occupancy``, ``stats["maps"]``: its normal and occlusion
-    maps (:func:`pipeline.texture.surface_maps.bake_surface_maps`, as ``cfg`` asks)."""
+    maps (:func:`pipeline.texture.surface_maps.bake_surface_maps`, as ``cfg`` asks). With ``carry``, the colours
+    and the surface maps' normals and occlusion are carried from another textured mesh of the same surface instead of
+    baked (texels it does not reach take the texture field's colour and the field's own normals and occlusion);
+    ``stats["carried"]``: the share it coloured."""
     images = [np.asarray(im, np.float32) for im in images]  # the bake's dtype: the extremes of float64 photos would
     # not round-trip through the float32 statistics of the photo-consistency pass
     base = trimesh.Trimesh(verts_n, faces, process=False)
     sizes = [(im.shape[1], im.shape[0]) for im in images]
-    tpu = texels_per_unit(base, cams, sizes, cfg)
+    tpu = carry.texels_per_unit if carry is not None else texels_per_unit(base, cams, sizes, cfg)
     with ThreadPoolExecutor(1) as pool:  # the depth maps beside the atlas (xatlas releases the GIL), on a mesh of
         # their own (trimesh's caches are not thread-safe)
-        deps = pool.submit(depth_maps, trimesh.Trimesh(verts_n, faces, process=False), cams, sizes)
+        deps = None if carry is not None else pool.submit(
+            depth_maps, trimesh.Trimesh(verts_n, faces, process=False), cams, sizes)
         vmap, nf, uvs, side = make_atlas(verts_n, faces, tpu, cfg.padding, cfg.size)
         nv = verts_n[vmap]
         normals = base.vertex_normals[vmap]
         fid = rasterize_atlas(uvs, nf, side)
         r, c, pts, nrm, face, bary = texel_geometry(fid, uvs, nf, nv, normals, with_bary=True)
-        deps = deps.result()
-    # the seam offsets live on the original vertices; xatlas keeps the faces' order, so ``face`` is a row of faces
-    surface = TexelSurface(vmap[nf[face]], bary, np.asarray(faces), len(verts_n), face)
-    col, wsum, band_only = bake(pts, nrm, images, cams, deps, cfg, surface, clipped)
-    unseen = wsum <= 0
-    fallback = unseen | band_only  # a colour only the silhouette band gives may be background: not trusted
+        deps = None if deps is None else deps.result()
+    extra, known = {}, {}
+    if carry is not None:
+        source = carry.source()
+        at = carried_uvs(source, pts, nrm, carry.reach)
+        col, found = carried(source.texture, *at, len(pts))
+        unseen = fallback = ~found
+        extra["carried"] = float(found.mean()) if len(found) else 1.0
+        if source.normals is not None:  # the normal map's texels are these texels
+            known["known_normals"] = carried(source.normals, *at, len(pts))
+        if source.occlusion is not None:  # the occlusion map's texels: those of an atlas of half the side
+            known["known_occlusion"] = lambda p, n: carried(source.occlusion[..., None],
+                                                            *carried_uvs(source, p, n, carry.reach), len(p))
+    else:
+        # the seam offsets live on the original vertices; xatlas keeps the faces' order, so ``face`` is a row of faces
+        surface = TexelSurface(vmap[nf[face]], bary, np.asarray(faces), len(verts_n), face)
+        col, wsum, band_only = bake(pts, nrm, images, cams, deps, cfg, surface, clipped)
+        unseen = wsum <= 0
+        fallback = unseen | band_only  # a colour only the silhouette band gives may be background: not trusted
     if fallback.any():
         col[fallback] = fill_unseen(pts, col, fallback, field, field_frame, field_gain)
     tex = np.zeros((side, side, 3), np.float32)
@@ -147,10 +192,11 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
     tex, filled = dilate_gutter(tex, valid, cfg.gutter)
     covered_faces = np.unique(fid[valid])
     stats = {"size": side, "texels": int(valid.sum()), "unseen_frac": float(unseen.mean()) if len(unseen) else 0.0,
-             "faces": int(len(nf)), "faces_with_texels": int(len(covered_faces)), "filled": filled, "normals": normals}
+             "faces": int(len(nf)), "faces_with_texels": int(len(covered_faces)), "filled": filled, "normals": normals,
+             **extra}
     if occupancy is not None and (cfg.normal_map or cfg.occlusion_reach > 0):
         stats["maps"] = bake_surface_maps(occupancy, nv, nf, uvs, normals, fid, cfg.normal_map, cfg.occlusion_reach,
-                                          cfg.gutter)
+                                          cfg.gutter, **known)
     return nv, nf, uvs, tex, stats
 
 
@@ -225,6 +271,30 @@ def read_clean_mesh(path: Path) -> trimesh.Trimesh:
     return m
 
 
+def bake_beside(default: Callable[[], dict], levels: dict[str, Callable[[], dict]]) -> tuple[dict, dict]:
+    """``default()`` in this thread and the ``levels``' bakes (in their order) :data:`BAKES_AT_ONCE` at a time
+    beside it: (its result, each level's). A failure of any of them (a full disk, Ctrl-C) stops the levels not
+    started yet."""
+    stop = threading.Event()
+
+    def unless_stopped(bake: Callable[[], dict]) -> dict | None:
+        if stop.is_set():
+            return None
+        try:
+            return bake()
+        except BaseException:
+            stop.set()
+            raise
+
+    with ThreadPoolExecutor(BAKES_AT_ONCE) as pool:
+        pending = {name: pool.submit(unless_stopped, bake) for name, bake in levels.items()}
+        try:
+            return default(), {name: future.result() for name, future in pending.items()}
+        except BaseException:
+            stop.set()
+            raise
+
+
 def run(job: Job) -> Done:
     """Stage ``texture`` (called by :func:`pipeline.stages.run_stage`): the clean mesh UV-unwrapped and baked from
     the photos (the texture field for texels no photo sees) → mesh/textured.obj/.mtl/.png, mesh/textured.glb and
@@ -239,19 +309,29 @@ def run(job: Job) -> Done:
     field, _, field_frame = read_model(final, resolve_device(cfg.device)) if final.exists() else (None, None, None)
     fine = fine_mesh(ws.mesh / "raw.ply", mesh_stamp, cams) if field is not None and cfg.normal_map else None
     occupancy = None if field is None else surface_field(field, field_frame, mesh_stamp.get("footprint", 0.0), fine)
+    reach = occupancy.cell if occupancy is not None else CARRY_REACH  # how far two meshes of the field may part
     display, up_from = upright(cams, cfg.frame)
     metric = bool(mesh_units(ws.root, cfg.frame))  # a printed board put the SfM frame in metres
 
-    def bake_to(folder: Path) -> dict:
-        """The clean mesh of ``folder`` textured into that folder; its stats."""
+    baked: dict[str, BakedMesh] = {}
+
+    def clean_normalized(folder: Path) -> trimesh.Trimesh:
         m = read_clean_mesh(folder / "clean.ply")
-        verts_n = np.asarray(m.vertices, np.float64)
         if mesh_stamp.get("frame", "sfm") == "sfm":
-            verts_n = to_normalized(verts_n, cams.scale_mat)
-        nv, nf, uvs, tex, stats = texture_mesh(verts_n, np.asarray(m.faces), images, cams, cfg, field, field_frame,
-                                               field_gain, clipped, occupancy)
-        out_v = to_sfm(nv, cams.scale_mat) if cfg.frame == "sfm" else nv
+            m.vertices = to_normalized(np.asarray(m.vertices, np.float64), cams.scale_mat)
+        return m
+
+    def bake_to(folder: Path, carry: Carry | None = None) -> dict:
+        """The clean mesh of ``folder`` textured into that folder (its colours carried from the default mesh's with
+        ``carry``); its stats. The default mesh's texture is kept in ``baked``."""
+        m = clean_normalized(folder)
+        nv, nf, uvs, tex, stats = texture_mesh(np.asarray(m.vertices, np.float64), np.asarray(m.faces), images, cams,
+                                               cfg, field, field_frame, field_gain, clipped, occupancy, carry)
         normals, maps = stats.pop("normals"), stats.pop("maps", None)
+        if folder == ws.mesh:
+            baked["default"] = BakedMesh(nv, nf, uvs, tex, *((None, None) if maps is None else
+                                                             (maps.occlusion, maps.object_normals)))
+        out_v = to_sfm(nv, cams.scale_mat) if cfg.frame == "sfm" else nv
         if cfg.frame == "sfm":  # directions turn with the frame (a similarity: scale, rotation, shift)
             normals = turned(normals, cams.scale_mat)
             if maps is not None:
@@ -265,19 +345,36 @@ def run(job: Job) -> Done:
         stats["glb_bytes"] = (folder / "textured.glb").stat().st_size
         return stats
 
-    with heartbeat("texture: baking the photos into the atlas"):
-        stats = bake_to(ws.mesh)
-    stats["glb_up"] = {"from": up_from, "node_matrix": np.round(display, 9).tolist()}
-    print(f"texture: {stats['size']}² atlas, {100 * (1 - stats['unseen_frac']):.1f} % of texels from photos → "
-          f"{ws.mesh / 'textured.glb'}; {size_in_words(stats['object_size'], metric)}")
-    levels = {}
-    for level in mesh_stamp.get("levels", {}):
+    def bake_level(level: str) -> dict:
+        """The detail level's mesh textured into its folder; the stats the report shows, printed."""
         folder = level_folder(ws.mesh, level)
+        carry = None if cfg.levels_from_photos else Carry(
+            lambda: default_done.wait() and baked["default"], density, reach)
         with heartbeat(f"texture: detail level {level}"):
-            baked = bake_to(folder)
-        levels[level] = {k: v for k, v in baked.items() if k in ("faces", "size", "glb_bytes")}
-        print(f"texture: detail level {level}: {levels[level]['faces']} faces, {levels[level]['size']}² atlas, "
-              f"{levels[level]['glb_bytes'] / 1e6:.1f} MB → {folder / 'textured.glb'}")
+            got = {k: v for k, v in bake_to(folder, carry).items() if k in ("faces", "size", "glb_bytes", "carried")}
+        say_now(f"texture: detail level {level}: {got['faces']} faces, {got['size']}² atlas, "
+                f"{got['glb_bytes'] / 1e6:.1f} MB → {folder / 'textured.glb'}")
+        return got
+
+    def bake_default() -> dict:
+        """The default mesh textured (the levels waiting for its colours go on once it is done or has failed)."""
+        try:
+            with heartbeat("texture: baking the photos into the atlas"):
+                stats = bake_to(ws.mesh)
+        finally:
+            default_done.set()
+        stats["glb_up"] = {"from": up_from, "node_matrix": np.round(display, 9).tolist()}
+        print(f"texture: {stats['size']}² atlas, {100 * (1 - stats['unseen_frac']):.1f} % of texels from photos → "
+              f"{ws.mesh / 'textured.glb'}; {size_in_words(stats['object_size'], metric)}")
+        return stats
+
+    asked = mesh_stamp.get("levels", {})
+    if asked and not cfg.levels_from_photos:  # the levels' atlases take the default mesh's density
+        density = texels_per_unit(clean_normalized(ws.mesh), cams, [(im.shape[1], im.shape[0]) for im in images], cfg)
+    default_done = threading.Event()
+    heaviest = sorted(asked, key=lambda lv: -(asked[lv] if isinstance(asked[lv], int) else 0))
+    stats, baked_levels = bake_beside(bake_default, {level: partial(bake_level, level) for level in heaviest})
+    levels = {level: baked_levels[level] for level in asked}
     if levels:
         stats["levels"] = levels
     return Done(stats)

@@ -177,29 +177,70 @@ def ambient_occlusion(logit_fn: LogitFn, points: np.ndarray, normals: np.ndarray
     return ao.double().numpy().clip(0.0, 1.0)
 
 
-def bake_normal_map(surface: SurfaceField, side: int, rows: np.ndarray, cols: np.ndarray, points: np.ndarray,
-                    frames: np.ndarray) -> tuple[np.ndarray, float]:
-    """(side, side, 3) normal-map colours of the texels at (``rows``, ``cols``) with surface ``points`` (M, 3) and
-    tangent ``frames`` (M, 3, 3) (:func:`texel_frames`): the field's normal (:func:`field_normals`) in tangent
-    space; where the field is unsure, the normal of the nearest vertex of the full-resolution mesh
-    (``surface.fine``), else the mesh's own; other texels flat. Also the share of texels the field was sure at."""
-    normals, sure = field_normals(surface.logit, points, frames[:, 2], surface.cell)
-    if surface.fine is not None and not sure.all():
-        from scipy.spatial import cKDTree
+KnownValues = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""Values known elsewhere (another textured mesh of the same surface, :mod:`pipeline.texture.transfer`): texel points
+(M, 3) and unit normals (M, 3) → (values (M, C), found (M,) bool)."""
 
-        fine_points, fine_normals = surface.fine
-        _, nearest = cKDTree(fine_points).query(points[~sure], k=1)
-        normals[~sure] = fine_normals[nearest]
+
+
+KnownNormals = tuple[np.ndarray, np.ndarray]
+"""Normals known elsewhere at M texel points: (x, y, z, sure) (M, 4) and where they were found (M,) bool."""
+
+
+def object_normals(surface: SurfaceField, points: np.ndarray, mesh_normals: np.ndarray,
+                   known: KnownNormals | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (M, 3) of the field at surface ``points`` (M, 3) and whether the field was sure there (M,):
+    :func:`field_normals`; where the field is unsure, the normal of the nearest vertex of the full-resolution mesh
+    (``surface.fine``), else the mesh's own (``mesh_normals``). ``known``: those found there are taken, the field is
+    asked for the rest."""
+    normals, sure = np.array(mesh_normals, np.float64), np.zeros(len(points), bool)
+    todo = np.ones(len(points), bool)
+    if known is not None:
+        values, found = known
+        if len(found) != len(points):
+            raise ValueError(f"known normals of {len(found)} points for {len(points)} points")
+        normals[found], sure[found] = _unit(values[found, :3].astype(np.float64)), values[found, 3] > 0.5
+        todo = ~found
+    if todo.any():
+        normals[todo], sure[todo] = field_normals(surface.logit, points[todo], mesh_normals[todo], surface.cell)
+        unsure = np.flatnonzero(todo & ~sure)
+        if surface.fine is not None and len(unsure):
+            from scipy.spatial import cKDTree
+
+            fine_points, fine_normals = surface.fine
+            _, nearest = cKDTree(fine_points).query(points[unsure], k=1)
+            normals[unsure] = fine_normals[nearest]
+    return normals, sure
+
+
+def bake_normal_map(surface: SurfaceField, side: int, rows: np.ndarray, cols: np.ndarray, points: np.ndarray,
+                    frames: np.ndarray, known: KnownNormals | None = None
+                    ) -> tuple[np.ndarray, float, np.ndarray]:
+    """(side, side, 3) normal-map colours of the texels at (``rows``, ``cols``) with surface ``points`` (M, 3) and
+    tangent ``frames`` (M, 3, 3) (:func:`texel_frames`): the field's normal (:func:`object_normals`, ``known``: see
+    there) in tangent space; other texels flat. Also the share of texels the field was sure at, and the normals
+    themselves with that sureness as a (side, side, 4) image (x, y, z, sure; 0 off the texels)."""
+    normals, sure = object_normals(surface, points, frames[:, 2], known)
     out = np.tile(FLAT_NORMAL, (side, side, 1))
     out[rows, cols] = encode_normals(to_tangent_space(frames, normals))
-    return out, float(sure.mean()) if len(sure) else 1.0
+    image = np.zeros((side, side, 4), np.float32)
+    image[rows, cols] = np.concatenate([normals, sure[:, None]], 1)
+    return out, float(sure.mean()) if len(sure) else 1.0, image
 
 
 def bake_occlusion_map(logit_fn: LogitFn, side: int, rows: np.ndarray, cols: np.ndarray, points: np.ndarray,
-                       normals: np.ndarray, reach: float, lift: float) -> np.ndarray:
-    """(side, side) occlusion of the texels at (``rows``, ``cols``) (:func:`ambient_occlusion`); others 1."""
+                       normals: np.ndarray, reach: float, lift: float, known: KnownValues | None = None
+                       ) -> np.ndarray:
+    """(side, side) occlusion of the texels at (``rows``, ``cols``) (:func:`ambient_occlusion`; the values ``known``
+    finds, its first column, where it finds them); others 1."""
     out = np.ones((side, side), np.float32)
-    out[rows, cols] = ambient_occlusion(logit_fn, points, normals, reach, lift)
+    todo = np.ones(len(rows), bool)
+    if known is not None:
+        values, found = known(points, normals)
+        out[rows[found], cols[found]] = values[found, 0]
+        todo = ~found
+    if todo.any():
+        out[rows[todo], cols[todo]] = ambient_occlusion(logit_fn, points[todo], normals[todo], reach, lift)
     return out
 
 
@@ -247,25 +288,33 @@ class SurfaceMaps:
     occlusion: np.ndarray | None
     tangents: np.ndarray
     sure: float
+    object_normals: np.ndarray | None = None
+    """The normal map's normals in the mesh's frame and their sureness (side, side, 4) (:func:`bake_normal_map`),
+    grown around the charts; None without a normal map."""
 
 
 def bake_surface_maps(surface: SurfaceField, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray,
                       normals: np.ndarray, fid: np.ndarray, normal_map: bool, occlusion_reach: float,
-                      gutter: int) -> SurfaceMaps:
+                      gutter: int, known_normals: KnownNormals | None = None,
+                      known_occlusion: KnownValues | None = None) -> SurfaceMaps:
     """The normal map at the atlas's resolution (``fid``: :func:`rasterize_atlas`'s face per texel) and the occlusion
-    map at half of it (``occlusion_reach`` > 0; it varies slowly), each grown ``gutter`` texels around the charts, for
-    the UV-mapped mesh ``verts``, ``faces``, ``uvs`` with unit vertex ``normals``."""
+    map at half of it (``occlusion_reach`` > 0; it varies slowly), each grown ``gutter`` texels around the charts,
+    for the UV-mapped mesh ``verts``, ``faces``, ``uvs`` with unit vertex ``normals``. ``known_normals``: at the
+    atlas's texels in ``np.nonzero(fid >= 0)``'s order (:func:`object_normals`); ``known_occlusion``: see
+    :func:`bake_occlusion_map`."""
     tangents = vertex_tangents(verts, faces, uvs, normals)
-    normal, sure, occlusion = None, 1.0, None
+    normal, sure, occlusion, image = None, 1.0, None, None
     if normal_map:
         r, c, pts, _, face, bary = texel_geometry(fid, uvs, faces, verts, normals, with_bary=True)
         frames = texel_frames(faces, face, bary, normals, tangents)
-        normal, sure = bake_normal_map(surface, fid.shape[0], r, c, pts, frames)
+        normal, sure, image = bake_normal_map(surface, fid.shape[0], r, c, pts, frames, known_normals)
         normal = dilate_gutter(normal, fid >= 0, gutter)[0]
+        image = dilate_gutter(image, fid >= 0, gutter)[0]
     if occlusion_reach > 0:
         half = max(fid.shape[0] // 2, 1)
         coarse = rasterize_atlas(uvs, faces, half)
         r, c, pts, nrm = texel_geometry(coarse, uvs, faces, verts, normals)
-        occlusion = bake_occlusion_map(surface.logit, half, r, c, pts, nrm, occlusion_reach, 2 * surface.cell)
+        occlusion = bake_occlusion_map(surface.logit, half, r, c, pts, nrm, occlusion_reach, 2 * surface.cell,
+                                       known_occlusion)
         occlusion = dilate_gutter(occlusion[..., None], coarse >= 0, max(gutter // 2, 1))[0][..., 0]
-    return SurfaceMaps(normal, occlusion, tangents, sure)
+    return SurfaceMaps(normal, occlusion, tangents, sure, image)

@@ -197,7 +197,7 @@ def test_a_full_disk_at_every_write_of_every_stage_is_one_line_and_the_next_run_
             reconstruct(root / "scene" / "images", ws, cfg, **_user(root))
         except StageError as exc:
             line = str(exc)
-            # the stage of the writes that failed ("?": in a thread of the stage, the texture's PNG beside its GLB)
+            # the stage of the writes that failed ("?": in a thread of the stage, a detail level's texture)
             stage = {h[0] for h in hits[before:]} - {"?"}
             assert len(hits) > before and len(stage) <= 1 and "\n" not in line
             assert line.startswith(tuple(f"{s}: the disk is full: no room to write {ws}" for s in STAGE_NAMES
@@ -211,8 +211,8 @@ def test_a_full_disk_at_every_write_of_every_stage_is_one_line_and_the_next_run_
     assert set(STAGE_NAMES) <= {h[0] for h in hits}
     writers = {h[2] for h in hits}  # the functions that called dvr.atomic: every kind of file
     assert {"begin", "mark_done", "import_cameras", "save_cameras", "write_points", "run", "write_overlays",
-            "_fresh_or_resume", "save_checkpoint", "save_model", "_export", "export_textured", "write_pngs",
-            "curves"} <= writers, writers
+            "_fresh_or_resume", "save_checkpoint", "save_model", "_export", "export_textured", "curves"} <= writers, \
+        writers
     assert glb_summary(ws) == clean
 
 

@@ -31,7 +31,8 @@ def test_an_unknown_level_is_one_line_naming_the_option_and_the_levels():
 
 def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_path, monkeypatch, capsys):
     """Two levels (preview's budget made small enough to decimate this small mesh) beside the default mesh, the
-    lighter decimated from the heavier's clean mesh: each a clean.ply within its budget and a textured GLB, faces and
+    lighter decimated from the heavier's clean mesh: each a clean.ply within its budget and a textured GLB (its
+    colours carried from the default mesh's texture), faces and
     GLB sizes in the stamps and the report, a progress line while each bakes (every 0.05 s here, 20 s by default);
     asking for one level afterwards redoes the mesh and
     texture stages, not the training, and removes the other level."""
@@ -73,6 +74,7 @@ def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_pat
         assert (folder / "textured.usdz").stat().st_size > 0
         assert all((folder / name).stat().st_size > 0 for name in MAP_FILES.values())  # baked per level
         assert texture["levels"][level]["faces"] == mesh["levels"][level] and tex.shape[2] == 3
+        assert texture["levels"][level]["carried"] > 0.98, texture["levels"]  # the default mesh's colours
     out = capsys.readouterr().out
     assert "texture: detail level preview (" in out and "texture: detail level raw (" in out, out
     report = (ws / "report.html").read_text()

@@ -101,6 +101,24 @@ def test_depth_maps_equal_the_z_buffer_reference():
     assert 1 <= declined <= 2  # the views behind which the floor reaches
 
 
+def test_a_small_object_casts_only_its_box_and_keeps_the_depths():
+    """An object in a corner of the image: the rays of its projected box only (the rest of the image is inf) give
+    the z-buffer's depths."""
+    R, c = _camera([0.0, 0.1, 3.0])
+    small = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+    small.apply_translation((0.6, 0.4, 0.0))
+    caster = MeshCaster(small)
+    cast = []
+    real = caster.first_hits
+    caster.first_hits = lambda o, d: cast.append(len(d)) or real(o, d)
+    got = caster.depth_map(K, R, c, W, H)
+    want = ray_depth_map(small.vertices, small.faces, K, R, c, W, H)
+    assert 0 < cast[0] < W * H / 3 and np.isfinite(got).sum() > 40
+    assert (np.isfinite(want) != np.isfinite(got)).sum() <= 2
+    both = np.isfinite(want) & np.isfinite(got)
+    assert np.allclose(got[both], want[both], rtol=1e-6)
+
+
 def test_the_z_buffer_reference_outside_the_image_and_behind_the_camera():
     R, c = _camera([0.0, 0.1, 3.0])
     far = trimesh.creation.box((0.1, 0.1, 0.1))

@@ -226,3 +226,31 @@ def test_the_full_resolution_mesh_is_read_in_the_normalized_frame_or_not_at_all(
     assert fine_mesh(tmp_path / "missing.ply", {}, cams) is None
     (tmp_path / "bad.ply").write_bytes(b"ply\ngarbage")
     assert fine_mesh(tmp_path / "bad.ply", {}, cams) is None
+
+
+def test_known_normals_and_occlusion_are_taken_where_found_and_the_field_asked_elsewhere():
+    """Normals and occlusion known elsewhere (another mesh's maps carried over) stand where they were found; the
+    field gives the rest, as it would alone; known normals of another number of points are a ValueError."""
+    from pipeline.texture.surface_maps import bake_occlusion_map, object_normals
+
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(50, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    points, mesh_normals = RADIUS * directions, directions
+    surface = SurfaceField(sphere_logit, CELL)
+    alone, alone_sure = object_normals(surface, points, mesh_normals)
+    found = np.arange(50) % 3 == 0
+    known = np.zeros((50, 4))
+    known[:, 2], known[:, 3] = 2.0, 1.0  # +z, 2 long (made unit), sure
+    normals, sure = object_normals(surface, points, mesh_normals, (known, found))
+    assert np.allclose(normals[found], [0, 0, 1]) and sure[found].all()
+    assert np.allclose(normals[~found], alone[~found]) and (sure[~found] == alone_sure[~found]).all()
+    with pytest.raises(ValueError, match="known normals of 49 points for 50 points"):
+        object_normals(surface, points, mesh_normals, (known[:49], found[:49]))
+
+    rows, cols = np.arange(50) // 10, np.arange(50) % 10
+    field_only = bake_occlusion_map(sphere_logit, 10, rows, cols, points, mesh_normals, 0.2, 2 * CELL)
+    known_ao = bake_occlusion_map(sphere_logit, 10, rows, cols, points, mesh_normals, 0.2, 2 * CELL,
+                                  lambda p, n: (np.full((len(p), 1), 0.25), found))
+    assert np.allclose(known_ao[rows[found], cols[found]], 0.25)
+    assert np.allclose(known_ao[rows[~found], cols[~found]], field_only[rows[~found], cols[~found]])

@@ -75,21 +75,26 @@ def test_baked_texture_psnr_at_heldout_views(baked):
     assert np.mean(ours) >= 35.0 and min(ours) >= 30.0
 
 
+def noise_cow_photos(folder):
+    """The cow with a smooth 3-D noise albedo, 24 photos of 256² and 4 held out written into ``folder``: (its scene,
+    true mesh, cameras, photos as float32 RGB)."""
+    sc = scene_from_dict({"shape": {"kind": "mesh", "path": str(SHARED / "meshes/cow/cow.obj")},
+                          "albedo": {"kind": "noise", "scale": 1.0},
+                          "cameras": {"n_views": 24, "width": W, "height": W, "rings": 2, "elevation": [0, 45],
+                                      "heldout": 4}})
+    write_scene(sc, folder)
+    imgs = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
+            for p in sorted((folder / "images").glob("*.png"))]
+    return sc, MeshShape(sc.shape, ".").gt, load_cameras(folder / "cameras.npz"), imgs
+
+
 def test_smooth_texture_baked_back_near_lossless(tmp_path):
     """A texture the photos resolve (smooth 3-D noise on the cow) comes back to within ~1 grey level RMS at
     held-out views; the oracle (the true albedo written straight into the same atlas) shows the limit of the
     atlas and of 8-bit images."""
     from synth.render import albedo_of
 
-    sc = scene_from_dict({"shape": {"kind": "mesh", "path": str(SHARED / "meshes/cow/cow.obj")},
-                          "albedo": {"kind": "noise", "scale": 1.0},
-                          "cameras": {"n_views": 24, "width": W, "height": W, "rings": 2, "elevation": [0, 45],
-                                      "heldout": 4}})
-    write_scene(sc, tmp_path)
-    gt = MeshShape(sc.shape, ".").gt
-    cams = load_cameras(tmp_path / "cameras.npz")
-    imgs = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
-            for p in sorted((tmp_path / "images").glob("*.png"))]
+    sc, gt, cams, imgs = noise_cow_photos(tmp_path)
     cfg = TextureConfig(size=1024)
     nv, nf, uvs, tex, stats = texture_mesh(np.asarray(gt.vertices), np.asarray(gt.faces), imgs, cams, cfg, None)
     fid = rasterize_atlas(uvs, nf, tex.shape[0])
@@ -319,9 +324,8 @@ def test_glb_textures_clamp_to_edge(tmp_path):
         assert sampler["minFilter"] == 9987 and sampler["magFilter"] == 9729
 
 
-def test_a_full_disk_while_the_png_is_written_in_its_thread_stops_the_export(tmp_path, monkeypatch):
-    """textured.png is written in a thread beside the GLB's encoding: its failure (a full disk) is the export's, not
-    a warning in the thread and an OBJ without its texture."""
+def test_a_full_disk_while_the_png_is_written_stops_the_export(tmp_path, monkeypatch):
+    """textured.png's failure to be written (a full disk) is the export's: no warning, no OBJ without its texture."""
     import errno
 
     from dvr import atomic
@@ -821,6 +825,45 @@ def test_a_large_mesh_past_the_cap_is_charted_once_and_scaled_onto_it(monkeypatc
     assert len(calls) == 1 and side == 512 and 0 <= uvs.min() and uvs.max() <= 1
     fid = rasterize_atlas(uvs, nf, side)
     assert len(np.unique(fid[fid >= 0])) > 0.95 * len(nf)
+
+
+def test_a_mesh_charted_in_pieces_is_one_atlas_of_the_same_faces(monkeypatch):
+    """A mesh of more than twice ``PIECE_FACES`` faces is charted as pieces (boxes of space of equal face counts): one
+    atlas, each face at its own corners in its own place in the faces' order, no two faces on one texel, the density
+    asked for."""
+    from pipeline.texture import atlas
+
+    mesh = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces
+    pieces = atlas.split_faces(mesh.vertices, mesh.faces, 5)
+    assert len(pieces) == 5 and np.array_equal(np.sort(np.concatenate(pieces)), np.arange(len(mesh.faces)))
+    assert max(map(len, pieces)) - min(map(len, pieces)) <= 1
+    monkeypatch.setattr(atlas, "PIECE_FACES", 1000)
+    charted = []
+    real_joined = atlas._joined
+    monkeypatch.setattr(atlas, "_joined", lambda at, local, p: charted.append(len(p)) or real_joined(at, local, p))
+    vmap, nf, uvs, side = atlas.make_atlas(mesh.vertices, mesh.faces, 80.0, 4, 2048)
+    assert charted == [5]
+    assert np.allclose(mesh.vertices[vmap][nf], mesh.vertices[mesh.faces])  # the same faces, in the same order
+    assert uvs.min() >= 0 and uvs.max() <= 1
+    assert _texels_per_length(uvs, nf, mesh.vertices[vmap], side) == pytest.approx(80.0, rel=0.03)
+    fid = rasterize_atlas(uvs, nf, side)
+    assert (np.bincount(fid[fid >= 0], minlength=len(nf)) > 0).all()
+    assert _most_faces_on_a_texel(uvs * side, nf, side) == 1  # no two charts overlap
+
+
+def _most_faces_on_a_texel(xy: np.ndarray, faces: np.ndarray, side: int) -> int:
+    """The most UV triangles (``xy`` in texels) whose inside holds one texel centre."""
+    count = np.zeros((side, side), np.int32)
+    for tri in xy[faces]:
+        (x0, y0), (x1, y1) = np.floor(tri.min(0)).astype(int), np.ceil(tri.max(0)).astype(int)
+        px, py = np.meshgrid(np.arange(x0, x1) + 0.5, np.arange(y0, y1) + 0.5)
+        a, b, c = tri
+        den = (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1])
+        w1 = ((px - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (py - a[1])) / den
+        w2 = ((b[0] - a[0]) * (py - a[1]) - (px - a[0]) * (b[1] - a[1])) / den
+        inside = (w1 > 1e-6) & (w2 > 1e-6) & (w1 + w2 < 1 - 1e-6)
+        count[y0:y1, x0:x1][inside] += 1
+    return int(count.max())
 
 
 def test_unreadable_clean_mesh_is_one_line(tmp_path):
