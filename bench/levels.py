@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'':24s} {'mesh s':>8s} {'texture s':>10s}")
     print(f"{'default mesh alone':24s} {alone['mesh']:8.1f} {alone['texture']:10.1f}")
     print(f"{'with every level':24s} {every['mesh']:8.1f} {every['texture']:10.1f}   ({args.levels})")
-    print(f"every level adds {extra:.1f} s to a whole run of {whole:.0f} s: {(whole + extra) / whole:.2f} ×")
+    print(f"every level adds {extra:.1f} s to a whole run of {whole:.0f} s: {(whole + extra) / whole:.3f} ×")
     print(json.dumps({"alone": alone, "every": every, "whole": whole, "ratio": (whole + extra) / whole}))
 
 

@@ -123,10 +123,15 @@ def pinches_apart(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig,
                points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[dict]]:
-    """Small components, duplicates, degenerate faces, non-manifold edges, small holes, smoothing, decimation, small
-    components again (the repairs can split some off), then the pieces that none of the SfM ``points`` (mesh frame;
-    None: none known) lies on (:func:`floaters`), and the split vertices moved apart (:func:`pinches_apart`).
-    Returns (vertices, faces, the dropped floaters)."""
+    """Small components, duplicates, degenerate faces, non-manifold edges, small holes, smoothing
+    (:func:`repaired_mesh`), decimation, small components again (the repairs can split some off), then the pieces
+    that none of the SfM ``points`` (mesh frame; None: none known) lies on (:func:`floaters`), and the split vertices
+    moved apart (:func:`pinches_apart`) (:func:`finished_mesh`). Returns (vertices, faces, the dropped floaters)."""
+    return finished_mesh(*repaired_mesh(verts, faces, cfg), cfg, points)
+
+
+def repaired_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The first part of :func:`clean_mesh`, before the decimation: (vertices, faces)."""
     import pymeshlab  # here, not at the top: the config tree (and a GPU machine's train stage) imports this module
 
     ms = pymeshlab.MeshSet()
@@ -144,6 +149,17 @@ def clean_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig,
     _make_closed(ms)
     if cfg.smooth_iterations > 0:
         ms.apply_coord_taubin_smoothing(stepsmoothnum=cfg.smooth_iterations)
+    m = ms.current_mesh()
+    return m.vertex_matrix(), m.face_matrix()
+
+
+def finished_mesh(verts: np.ndarray, faces: np.ndarray, cfg: MeshConfig,
+                  points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """The rest of :func:`clean_mesh`, from a :func:`repaired_mesh`: (vertices, faces, the dropped floaters)."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts, face_matrix=faces.astype(np.int32)))
     if ms.current_mesh().face_number() > cfg.max_faces:
         ms.meshing_decimation_quadric_edge_collapse(targetfacenum=cfg.max_faces, preservenormal=True)
         _make_closed(ms)  # an edge collapse can pinch two sheets into one edge shared by four faces
@@ -215,7 +231,8 @@ def run(job: Job) -> Done:
     ws.mesh.mkdir(parents=True, exist_ok=True)
     _export(raw, v, f, c, scale_mat, to_norm, cfg.frame)
     points = sfm_points(ws.root / "points.ply", scale_mat)
-    cv, cf, dropped = clean_mesh(v, f, cfg, points)
+    repaired = repaired_mesh(v, f, cfg)
+    cv, cf, dropped = finished_mesh(*repaired, cfg, points)
     for piece in dropped:
         print(f"mesh: dropped a floating piece of {piece['faces']} faces: {piece['points']} SfM points lie on it, "
               f"where the object's density of points would put {piece['expected']:.0f}")
@@ -231,7 +248,7 @@ def run(job: Job) -> Done:
     _export(clean, cv, cf, vertex_colours(field, cv, dev), scale_mat, to_norm, cfg.frame)
     units = mesh_units(ws.root, cfg.frame)  # {} unless a printed board put cameras.npz in metres
     print(f"mesh: {len(f)} raw faces, {len(cf)} clean faces{' (metres)' if units else ''} → {clean}")
-    levels = write_levels(ws, v, f, points, cfg, field, dev, scale_mat, to_norm)
+    levels = write_levels(ws, repaired, points, cfg, field, dev, scale_mat, to_norm)
     return Done({"raw_faces": int(len(f)), "clean_faces": int(len(cf)), "unseen_faces": unseen, "frame": cfg.frame,
                  "footprint": cfg.footprint,
                  **({"open_loops": loops, "open_length": round(length, 3)} if cfg.drop_unseen else {}),
@@ -247,20 +264,24 @@ def vertex_colours(field, verts: np.ndarray, dev) -> np.ndarray:
     return (cc.clamp(0, 1) * 255).round().byte().cpu().numpy()
 
 
-def write_levels(ws, verts: np.ndarray, faces: np.ndarray, points: np.ndarray | None, cfg: MeshConfig, field, dev,
-                 scale_mat: np.ndarray, to_norm: np.ndarray) -> dict:
+def write_levels(ws, repaired: tuple[np.ndarray, np.ndarray], points: np.ndarray | None, cfg: MeshConfig, field,
+                 dev, scale_mat: np.ndarray, to_norm: np.ndarray) -> dict:
     """The detail levels of ``cfg.detail`` (:mod:`pipeline.mesh.levels`), heaviest first, each cleaned as the clean
-    mesh is (its floaters judged by the SfM ``points``) with its face budget from the level before it (the first from
-    the raw mesh ``verts``, ``faces``: a chain of decimations, each from fewer faces than the raw mesh's) →
-    ``mesh/levels/<level>/clean.ply``. Returns the faces of each level, in the order asked. Levels not asked for are
-    removed (a stale one would be textured and shown as current)."""
+    mesh is (its floaters judged by the SfM ``points``) with its face budget from the level before it (the first
+    finished from the default mesh's ``repaired`` mesh, :func:`repaired_mesh`: a chain of decimations
+    (:func:`finished_mesh`), each from fewer faces than the raw mesh's) → ``mesh/levels/<level>/clean.ply``.
+    Returns the faces of each level, in the order asked. Levels not asked for are removed (a stale one would be
+    textured and shown as current)."""
     asked = parse_levels(cfg.detail)
     for old in sorted((ws.mesh / "levels").glob("*")) if (ws.mesh / "levels").is_dir() else []:
         if old.name not in asked:
             shutil.rmtree(old, ignore_errors=True)
     out = {}
+    verts, faces = None, None
     for level in sorted(asked, key=budget, reverse=True):
-        verts, faces, _ = clean_mesh(verts, faces, replace(cfg, max_faces=budget(level)), points)
+        level_cfg = replace(cfg, max_faces=budget(level))
+        # the level above is repaired already (finished_mesh repairs after its decimation): only its decimation
+        verts, faces, _ = finished_mesh(*(repaired if verts is None else (verts, faces)), level_cfg, points)
         lv, lf = verts, faces
         if cfg.drop_unseen:
             lv, lf, _ = _drop_unseen(ws, lv, lf, scale_mat, cfg)

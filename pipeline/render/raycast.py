@@ -38,6 +38,22 @@ class MeshCaster:
             loc, ray, face = loc[keep], ray[keep], face[keep]
         return ray, face, loc
 
+    def first_hits_barycentric(self, origins: np.ndarray, dirs: np.ndarray
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The nearest hit of each ray that meets the mesh: (ray index, face index, distance along the ray,
+        barycentrics (K, 3) in the face), one row per ray. Embree gives the barycentrics and distances itself (no
+        points computed and projected back); without it, :meth:`first_hits`'s points give them."""
+        scene = getattr(self._inter, "_scene", None)  # trimesh's Embree wrapper
+        if scene is None or not hasattr(scene, "run"):
+            ray, face, loc = self.first_hits(origins, dirs)
+            bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[face], loc)
+            return ray, face, ((loc - origins[ray]) * dirs[ray]).sum(1), bary
+        out = scene.run(origins, dirs, output=1)
+        ray = np.flatnonzero(out["primID"] >= 0)
+        u, v = out["u"][ray].astype(np.float64), out["v"][ray].astype(np.float64)
+        distance = out["tfar"][ray].astype(np.float64) / scene.scale
+        return ray, out["primID"][ray].astype(np.intp), distance, np.stack([1.0 - u - v, u, v], 1)
+
     def first_faces(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """(N,) the face each ray meets first, −1 where it meets none."""
         return self._inter.intersects_first(origins, dirs)

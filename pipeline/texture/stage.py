@@ -175,9 +175,10 @@ def texture_mesh(verts_n: np.ndarray, faces: np.ndarray, images: list[np.ndarray
         extra["carried"] = float(found.mean()) if len(found) else 1.0
         if source.normals is not None:  # the normal map's texels are these texels
             known["known_normals"] = carried(source.normals, *at, len(pts))
-        if source.occlusion is not None:  # the occlusion map's texels: those of an atlas of half the side
-            known["known_occlusion"] = lambda p, n: carried(source.occlusion[..., None],
-                                                            *carried_uvs(source, p, n, carry.reach), len(p))
+        if source.occlusion is not None:  # at these texels, for the occlusion map's coarser ones to look up
+            values, got = carried(source.occlusion[..., None], *at, len(pts))
+            known["known_occlusion"] = np.full((side, side), np.nan, np.float32)
+            known["known_occlusion"][r[got], c[got]] = values[got, 0]
     else:
         # the seam offsets live on the original vertices; xatlas keeps the faces' order, so ``face`` is a row of faces
         surface = TexelSurface(vmap[nf[face]], bary, np.asarray(faces), len(verts_n), face)
@@ -314,6 +315,8 @@ def run(job: Job) -> Done:
     metric = bool(mesh_units(ws.root, cfg.frame))  # a printed board put the SfM frame in metres
 
     baked: dict[str, BakedMesh] = {}
+    asked = mesh_stamp.get("levels", {})
+    carrying = bool(asked) and not cfg.levels_from_photos
 
     def clean_normalized(folder: Path) -> trimesh.Trimesh:
         m = read_clean_mesh(folder / "clean.ply")
@@ -328,9 +331,10 @@ def run(job: Job) -> Done:
         nv, nf, uvs, tex, stats = texture_mesh(np.asarray(m.vertices, np.float64), np.asarray(m.faces), images, cams,
                                                cfg, field, field_frame, field_gain, clipped, occupancy, carry)
         normals, maps = stats.pop("normals"), stats.pop("maps", None)
-        if folder == ws.mesh:
-            baked["default"] = BakedMesh(nv, nf, uvs, tex, *((None, None) if maps is None else
-                                                             (maps.occlusion, maps.object_normals)))
+        if folder == ws.mesh and carrying:  # the normals grown around the charts, as the colours are
+            grown = None if maps is None or maps.object_normals is None else \
+                dilate_gutter(maps.object_normals, (maps.object_normals[..., :3] != 0).any(-1), cfg.gutter)[0]
+            baked["default"] = BakedMesh(nv, nf, uvs, tex, None if maps is None else maps.occlusion, grown)
         out_v = to_sfm(nv, cams.scale_mat) if cfg.frame == "sfm" else nv
         if cfg.frame == "sfm":  # directions turn with the frame (a similarity: scale, rotation, shift)
             normals = turned(normals, cams.scale_mat)
@@ -348,7 +352,7 @@ def run(job: Job) -> Done:
     def bake_level(level: str) -> dict:
         """The detail level's mesh textured into its folder; the stats the report shows, printed."""
         folder = level_folder(ws.mesh, level)
-        carry = None if cfg.levels_from_photos else Carry(
+        carry = None if not carrying else Carry(
             lambda: default_done.wait() and baked["default"], density, reach)
         with heartbeat(f"texture: detail level {level}"):
             got = {k: v for k, v in bake_to(folder, carry).items() if k in ("faces", "size", "glb_bytes", "carried")}
@@ -368,8 +372,7 @@ def run(job: Job) -> Done:
               f"{ws.mesh / 'textured.glb'}; {size_in_words(stats['object_size'], metric)}")
         return stats
 
-    asked = mesh_stamp.get("levels", {})
-    if asked and not cfg.levels_from_photos:  # the levels' atlases take the default mesh's density
+    if carrying:  # the levels' atlases take the default mesh's density
         density = texels_per_unit(clean_normalized(ws.mesh), cams, [(im.shape[1], im.shape[0]) for im in images], cfg)
     default_done = threading.Event()
     heaviest = sorted(asked, key=lambda lv: -(asked[lv] if isinstance(asked[lv], int) else 0))

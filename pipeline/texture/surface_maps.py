@@ -177,10 +177,6 @@ def ambient_occlusion(logit_fn: LogitFn, points: np.ndarray, normals: np.ndarray
     return ao.double().numpy().clip(0.0, 1.0)
 
 
-KnownValues = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-"""Values known elsewhere (another textured mesh of the same surface, :mod:`pipeline.texture.transfer`): texel points
-(M, 3) and unit normals (M, 3) → (values (M, C), found (M,) bool)."""
-
 
 
 KnownNormals = tuple[np.ndarray, np.ndarray]
@@ -229,16 +225,20 @@ def bake_normal_map(surface: SurfaceField, side: int, rows: np.ndarray, cols: np
 
 
 def bake_occlusion_map(logit_fn: LogitFn, side: int, rows: np.ndarray, cols: np.ndarray, points: np.ndarray,
-                       normals: np.ndarray, reach: float, lift: float, known: KnownValues | None = None
+                       normals: np.ndarray, reach: float, lift: float, known: np.ndarray | None = None
                        ) -> np.ndarray:
-    """(side, side) occlusion of the texels at (``rows``, ``cols``) (:func:`ambient_occlusion`; the values ``known``
-    finds, its first column, where it finds them); others 1."""
+    """(side, side) occlusion of the texels at (``rows``, ``cols``) (:func:`ambient_occlusion`; where ``known``, the
+    occlusion known elsewhere at an atlas of any side (NaN: not known), holds a value at the texel's centre, that
+    value); others 1."""
     out = np.ones((side, side), np.float32)
     todo = np.ones(len(rows), bool)
     if known is not None:
-        values, found = known(points, normals)
-        out[rows[found], cols[found]] = values[found, 0]
-        todo = ~found
+        scale = known.shape[0] / side  # the known atlas's texel under each texel's centre
+        at_r = np.minimum(((rows + 0.5) * scale).astype(np.intp), known.shape[0] - 1)
+        at_c = np.minimum(((cols + 0.5) * scale).astype(np.intp), known.shape[1] - 1)
+        values = known[at_r, at_c]
+        todo = ~np.isfinite(values)
+        out[rows[~todo], cols[~todo]] = values[~todo]
     if todo.any():
         out[rows[todo], cols[todo]] = ambient_occlusion(logit_fn, points[todo], normals[todo], reach, lift)
     return out
@@ -289,14 +289,14 @@ class SurfaceMaps:
     tangents: np.ndarray
     sure: float
     object_normals: np.ndarray | None = None
-    """The normal map's normals in the mesh's frame and their sureness (side, side, 4) (:func:`bake_normal_map`),
-    grown around the charts; None without a normal map."""
+    """The normal map's normals in the mesh's frame and their sureness (side, side, 4) (:func:`bake_normal_map`; 0 off
+    the charts); None without a normal map."""
 
 
 def bake_surface_maps(surface: SurfaceField, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray,
                       normals: np.ndarray, fid: np.ndarray, normal_map: bool, occlusion_reach: float,
                       gutter: int, known_normals: KnownNormals | None = None,
-                      known_occlusion: KnownValues | None = None) -> SurfaceMaps:
+                      known_occlusion: np.ndarray | None = None) -> SurfaceMaps:
     """The normal map at the atlas's resolution (``fid``: :func:`rasterize_atlas`'s face per texel) and the occlusion
     map at half of it (``occlusion_reach`` > 0; it varies slowly), each grown ``gutter`` texels around the charts,
     for the UV-mapped mesh ``verts``, ``faces``, ``uvs`` with unit vertex ``normals``. ``known_normals``: at the
@@ -309,7 +309,6 @@ def bake_surface_maps(surface: SurfaceField, verts: np.ndarray, faces: np.ndarra
         frames = texel_frames(faces, face, bary, normals, tangents)
         normal, sure, image = bake_normal_map(surface, fid.shape[0], r, c, pts, frames, known_normals)
         normal = dilate_gutter(normal, fid >= 0, gutter)[0]
-        image = dilate_gutter(image, fid >= 0, gutter)[0]
     if occlusion_reach > 0:
         half = max(fid.shape[0] // 2, 1)
         coarse = rasterize_atlas(uvs, faces, half)

@@ -4,6 +4,7 @@ normal meets that mesh, sampled bilinearly. The photos are baked once; every lev
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,16 +25,17 @@ class BakedMesh:
     texture: np.ndarray
     occlusion: np.ndarray | None = None
     normals: np.ndarray | None = None
-    _caster: MeshCaster | None = field(default=None, init=False, repr=False)
+    _casters: threading.local = field(default_factory=threading.local, init=False, repr=False)
 
     @property
     def caster(self) -> MeshCaster:
-        """The mesh ready for ray casting (built on first use)."""
-        if self._caster is None:
+        """The mesh ready for ray casting, one per thread (the levels textured side by side each cast their own:
+        neither trimesh's caches nor the Embree wrapper are made for threads), built on first use."""
+        if getattr(self._casters, "caster", None) is None:
             import trimesh
 
-            self._caster = MeshCaster(trimesh.Trimesh(self.verts, self.faces, process=False))
-        return self._caster
+            self._casters.caster = MeshCaster(trimesh.Trimesh(self.verts, self.faces, process=False))
+        return self._casters.caster
 
 
 def carried_uvs(source: BakedMesh, points: np.ndarray, normals: np.ndarray, reach: float
@@ -48,19 +50,20 @@ def carried_uvs(source: BakedMesh, points: np.ndarray, normals: np.ndarray, reac
         raise ValueError(f"expected points and normals (M, 3); got {points.shape}, {normals.shape}")
     if reach <= 0:
         raise ValueError(f"reach must be > 0, got {reach}")
-    rows, faces, hits = [np.zeros(0, np.intp)], [np.zeros(0, np.intp)], [np.zeros((0, 3))]
+    rows, faces, barys = [np.zeros(0, np.intp)], [np.zeros(0, np.intp)], [np.zeros((0, 3))]
     todo = np.arange(len(points))
     for side in (-1.0, 1.0):  # from below, outwards; then from above, inwards
         if not len(todo):
             break
         origins, dirs = points[todo] + side * reach * normals[todo], -side * normals[todo]
-        ray, face, hit = source.caster.first_hits(origins, dirs)
-        along = ((hit - origins[ray]) * dirs[ray]).sum(1)
+        ray, face, along, bary = source.caster.first_hits_barycentric(origins, dirs)
         ok = (along <= 2 * reach) & ((source.caster.mesh.face_normals[face] * normals[todo][ray]).sum(1) > 0)
-        rows.append(todo[ray[ok]]), faces.append(face[ok]), hits.append(hit[ok])
+        rows.append(todo[ray[ok]]), faces.append(face[ok]), barys.append(bary[ok])
         todo = np.setdiff1d(todo, todo[ray[ok]], assume_unique=True)
-    rows, faces, hits = np.concatenate(rows), np.concatenate(faces), np.concatenate(hits)
-    return rows, _uv_at(source, faces, hits)
+    rows, faces, bary = np.concatenate(rows), np.concatenate(faces), np.concatenate(barys)
+    bary = np.clip(bary, 0.0, None)
+    bary /= bary.sum(1, keepdims=True).clip(1e-12)
+    return rows, np.einsum("kc,kcd->kd", bary, source.uvs[source.faces[faces]])
 
 
 def carried(texture: np.ndarray, rows: np.ndarray, uvs: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -72,24 +75,18 @@ def carried(texture: np.ndarray, rows: np.ndarray, uvs: np.ndarray, n: int) -> t
     return values, found
 
 
-def _uv_at(source: BakedMesh, face: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(K, 2) texture coordinates of ``points`` (K, 3) lying on the faces ``face`` (K,) of ``source``."""
-    import trimesh
-
-    corners = source.faces[face]
-    bary = trimesh.triangles.points_to_barycentric(source.verts[corners], points)
-    bary = np.clip(bary, 0.0, None)
-    bary /= bary.sum(1, keepdims=True).clip(1e-12)
-    return np.einsum("kc,kcd->kd", bary, source.uvs[corners])
-
-
 def bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(K, C) bilinear samples of a (side, side, C) texture (side ≥ 2) at ``uv`` (K, 2) (texel centres at
-    ((c + 0.5) / side, 1 − (r + 0.5) / side)), clamped to its border."""
-    side = texture.shape[0]
+    """(K, C) float32 bilinear samples of a (side, side, C) texture (side ≥ 2) at ``uv`` (K, 2) (texel centres at
+    ((c + 0.5) / side, 1 − (r + 0.5) / side)), clamped to its border; channel by channel, from flat planes."""
+    side, channels = texture.shape[0], texture.shape[2]
     x = np.clip(uv[:, 0] * side - 0.5, 0, side - 1)
     y = np.clip((1.0 - uv[:, 1]) * side - 0.5, 0, side - 1)
     x0, y0 = np.minimum(x.astype(np.intp), side - 2), np.minimum(y.astype(np.intp), side - 2)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return ((texture[y0, x0] * (1 - fx) + texture[y0, x0 + 1] * fx) * (1 - fy)
-            + (texture[y0 + 1, x0] * (1 - fx) + texture[y0 + 1, x0 + 1] * fx) * fy)
+    fx, fy = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
+    corners = [(0, (1 - fx) * (1 - fy)), (1, fx * (1 - fy)), (side, (1 - fx) * fy), (side + 1, fx * fy)]
+    base = y0 * side + x0
+    out = np.empty((len(uv), channels), np.float32)
+    for c in range(channels):
+        plane = np.ascontiguousarray(texture[..., c], np.float32).ravel()
+        out[:, c] = sum(plane.take(base + step) * weight for step, weight in corners)
+    return out

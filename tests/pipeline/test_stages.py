@@ -223,7 +223,7 @@ def test_a_stage_that_did_not_finish_is_not_read_by_the_next(small_ws, tmp_path,
         raise KeyboardInterrupt  # Ctrl-C after raw.ply was written, before clean.ply
 
     cfg.mesh.frame = "sfm"
-    monkeypatch.setattr(mesh, "clean_mesh", interrupted)
+    monkeypatch.setattr(mesh, "finished_mesh", interrupted)
     with pytest.raises(KeyboardInterrupt):
         run_stage("mesh", ws, cfg)
     monkeypatch.undo()

@@ -40,15 +40,21 @@ def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_pat
     import pipeline.texture.stage as texture_stage
     from pipeline.messages import heartbeat
 
-    cleaned = []  # (faces in, face budget, faces out) of every clean_mesh call
-    real_clean = mesh_stage.clean_mesh
+    cleaned = []  # (faces in, face budget, faces out) of every mesh finished (decimated, tidied)
+    real_repaired, real_finished = mesh_stage.repaired_mesh, mesh_stage.finished_mesh
+    repairs = []
 
-    def clean_mesh(verts, faces, cfg, points=None):
-        out = real_clean(verts, faces, cfg, points)
+    def repaired_mesh(verts, faces, cfg):
+        repairs.append(len(faces))
+        return real_repaired(verts, faces, cfg)
+
+    def finished_mesh(verts, faces, cfg, points=None):
+        out = real_finished(verts, faces, cfg, points)
         cleaned.append((len(faces), cfg.max_faces, len(out[1])))
         return out
 
-    monkeypatch.setattr(mesh_stage, "clean_mesh", clean_mesh)
+    monkeypatch.setattr(mesh_stage, "repaired_mesh", repaired_mesh)
+    monkeypatch.setattr(mesh_stage, "finished_mesh", finished_mesh)
     monkeypatch.setitem(LEVELS, "preview", 1500)
     monkeypatch.setattr(texture_stage, "heartbeat", lambda what: heartbeat(what, every=0.05))
     ws = tmp_path / "ws"
@@ -62,9 +68,11 @@ def test_levels_share_one_training_and_keep_their_face_budgets(small_ws, tmp_pat
     assert list(mesh["levels"]) == ["preview", "raw"] and mesh["levels"]["preview"] <= 1500
     assert 0.5 < texture["normal_map_sure"] <= 1.0
     assert mesh["levels"]["raw"] > mesh["clean_faces"] > mesh["levels"]["preview"]
-    # the levels are a chain, heaviest first: raw from the extracted mesh, preview from raw's clean mesh
+    # the levels are a chain, heaviest first: raw from the extracted mesh as the default mesh repaired it (repaired
+    # once), preview decimated from raw's clean mesh
     default, raw, preview = cleaned[:3]
-    assert raw[0] == default[0] == mesh["raw_faces"] and preview[0] == raw[2] == mesh["levels"]["raw"]
+    assert repairs == [mesh["raw_faces"]] and len(cleaned) == 3
+    assert raw[0] == default[0] <= mesh["raw_faces"] and preview[0] == raw[2] == mesh["levels"]["raw"]
     assert preview[1] == 1500
     for level in ("preview", "raw"):
         folder = ws / "mesh" / "levels" / level

@@ -248,9 +248,10 @@ def test_known_normals_and_occlusion_are_taken_where_found_and_the_field_asked_e
     with pytest.raises(ValueError, match="known normals of 49 points for 50 points"):
         object_normals(surface, points, mesh_normals, (known[:49], found[:49]))
 
-    rows, cols = np.arange(50) // 10, np.arange(50) % 10
+    rows, cols = np.arange(50) // 10, np.arange(50) % 10  # texels of a 10² map; occlusion known on a 21² one
     field_only = bake_occlusion_map(sphere_logit, 10, rows, cols, points, mesh_normals, 0.2, 2 * CELL)
-    known_ao = bake_occlusion_map(sphere_logit, 10, rows, cols, points, mesh_normals, 0.2, 2 * CELL,
-                                  lambda p, n: (np.full((len(p), 1), 0.25), found))
+    fine = np.full((21, 21), np.nan, np.float32)
+    fine[(rows[found] * 2.1 + 1.05).astype(int), (cols[found] * 2.1 + 1.05).astype(int)] = 0.25  # under the centres
+    known_ao = bake_occlusion_map(sphere_logit, 10, rows, cols, points, mesh_normals, 0.2, 2 * CELL, fine)
     assert np.allclose(known_ao[rows[found], cols[found]], 0.25)
     assert np.allclose(known_ao[rows[~found], cols[~found]], field_only[rows[~found], cols[~found]])
