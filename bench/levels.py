@@ -3,11 +3,14 @@ level, each on a copy of the workspace, timed; the run with every level against 
 alone.
 
     python bench/levels.py WS [--levels preview,reduced,medium,full,raw] [--whole SECONDS]
+    python bench/levels.py WS --psnr
 
 ``WS``: a trained workspace (``model/final.pt``; the bench's DTU workspace after ``python bench/arms.py dtu``, or any
 ``make reconstruct`` workspace). ``--whole``: the seconds of the whole run with the default mesh alone (the bench's
 row; default: the sum of the workspace's stage stamps). Prints the seconds of each stage both ways and the ratio of
-the whole run with every level to the whole run without.
+the whole run with every level to the whole run without. ``--psnr``: the PSNR of the default mesh's and each level's
+textured GLB of ``WS`` against every 5th of its photos, within their masks (``python -m pipeline texture WS --force``
+with and without ``--texture.levels-from-photos`` compares levels carried from the default mesh with levels baked).
 """
 from __future__ import annotations
 
@@ -45,12 +48,47 @@ def stamped_seconds(ws: Path) -> float:
     return total
 
 
+def level_psnrs(ws: Path, every: int = 5) -> dict[str, float]:
+    """Mean PSNR (dB) of the default mesh's and each level's ``textured.glb`` rendered at every ``every``-th photo of
+    ``ws`` (its cameras), against the photo within its mask."""
+    import cv2
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT))
+    from bench.evaluate import render_psnr
+    from dvr.cameras import load_cameras
+    from dvr.data import list_images
+    from pipeline.texture.export import read_textured
+
+    paths = list_images(ws / "images")
+    cams = load_cameras(ws / "cameras.npz", n_views=len(paths))
+    glbs = {"default": ws / "mesh" / "textured.glb"}
+    glbs.update({p.name: p / "textured.glb" for p in sorted((ws / "mesh" / "levels").glob("*"))})
+    out = {}
+    for name, glb in glbs.items():
+        mesh, texture = read_textured(glb)
+        scores = []
+        for i in range(0, len(paths), every):
+            photo = cv2.imread(str(paths[i]))[..., ::-1].astype(np.float32) / 255
+            mask = cv2.imread(str(ws / "masks" / f"{paths[i].stem}.png"), cv2.IMREAD_GRAYSCALE) > 127
+            scores.append(render_psnr(mesh, texture, cams.K[i], cams.R[i], cams.sfm_centers[i], photo, mask))
+        out[name] = float(np.mean(scores))
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("ws", type=Path)
     ap.add_argument("--levels", default="preview,reduced,medium,full,raw", help="the levels of the second run")
     ap.add_argument("--whole", type=float, help="seconds of the whole run of the default mesh alone")
+    ap.add_argument("--psnr", action="store_true", help="print each level's PSNR at the photos instead")
     args = ap.parse_args(argv)
+    if args.psnr:
+        psnrs = level_psnrs(args.ws)
+        for name, value in psnrs.items():
+            print(f"{name:10s} {value:7.3f} dB")
+        print(json.dumps(psnrs))
+        return
     whole = args.whole or stamped_seconds(args.ws)
     with tempfile.TemporaryDirectory() as tmp:
         copy = Path(tmp) / "ws"

@@ -25,3 +25,22 @@ def test_both_runs_remesh_and_retexture_the_copy_with_the_levels_asked(tmp_path,
     assert all(c[1] != str(ws) and c[2] == "--force" for c in calls)  # a copy, never the workspace itself
     out = capsys.readouterr().out
     assert "whole run of 100 s" in out and json.loads(out.splitlines()[-1])["whole"] == 100.0
+
+
+def test_the_psnr_of_each_level_is_read_from_its_glb(tmp_path, monkeypatch, capsys):
+    """--psnr: one figure per GLB (the default mesh's and each level's), from every 5th photo; no stage runs."""
+    import numpy as np
+
+    ws = tmp_path / "ws"
+    (ws / "mesh" / "levels" / "preview").mkdir(parents=True)
+    monkeypatch.setattr(levels.subprocess, "run", lambda *a, **k: (_ for _ in ()).throw(AssertionError("ran")))
+    seen = []
+
+    def fake_psnrs(path, every=5):
+        seen.append((path, every))
+        return {"default": 20.0, "preview": float(np.float64(19.5))}
+
+    monkeypatch.setattr(levels, "level_psnrs", fake_psnrs)
+    levels.main([str(ws), "--psnr"])
+    assert seen == [(ws, 5)]
+    assert json.loads(capsys.readouterr().out.splitlines()[-1]) == {"default": 20.0, "preview": 19.5}
