@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from dvr.cameras import load_cameras  # noqa: E402
 from pipeline.render.raycast import MeshCaster, pixel_center_rays  # noqa: E402
+from pipeline.render.textured import sample_uv  # noqa: E402
 from pipeline.texture.surface_maps import decode_normals, shading_normals, texel_frames  # noqa: E402
 
 COMPONENTS = {5126: np.float32, 5125: np.uint32, 5123: np.uint16}
@@ -76,18 +77,6 @@ def read_glb(path: Path) -> dict:
             "tangents": accessor(attrs["TANGENT"]) if "TANGENT" in attrs else None, "normal_map": normal_map}
 
 
-def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """``image`` (H, W, C) sampled bilinearly at texture coordinates ``uv`` (M, 2) (v up; texel centres at
-    (j + 0.5) / W), clamped to the edge."""
-    h, w = image.shape[:2]
-    x = (uv[:, 0] * w - 0.5).clip(0, w - 1)
-    y = ((1.0 - uv[:, 1]) * h - 0.5).clip(0, h - 1)
-    x0, y0 = np.floor(x).astype(int).clip(0, w - 2), np.floor(y).astype(int).clip(0, h - 2)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return ((image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx) * (1 - fy)
-            + (image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx) * fy)
-
-
 def shaded_normals(glb: dict, caster: MeshCaster, origins: np.ndarray, dirs: np.ndarray, mapped: bool):
     """(ray index, hit depth, unit shading normal) of each ray that meets the GLB's mesh: the interpolated vertex
     normal, bent by the normal map (``mapped``) in the glTF tangent frame."""
@@ -99,7 +88,7 @@ def shaded_normals(glb: dict, caster: MeshCaster, origins: np.ndarray, dirs: np.
     if mapped and glb["normal_map"] is not None:
         frames = texel_frames(glb["faces"], face, bary, glb["normals"], glb["tangents"])
         uv = (glb["uvs"][glb["faces"][face]] * bary[..., None]).sum(1)
-        normals = shading_normals(frames, decode_normals(bilinear(glb["normal_map"], uv)))
+        normals = shading_normals(frames, decode_normals(sample_uv(glb["normal_map"], uv)))
     else:
         normals = (glb["normals"][glb["faces"][face]] * bary[..., None]).sum(1)
         normals /= np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)

@@ -9,14 +9,29 @@ from pipeline.render.raycast import MeshCaster, pixel_center_rays
 
 
 def sample_bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear lookup at continuous (x, y) where integer coordinates are pixel centres (edges clamped)."""
+    """Bilinear lookup (N, C) of an (h, w, C) image at continuous (x, y) where integer coordinates are pixel centres
+    (edges clamped). Channel by channel from contiguous planes: 1-D gathers are several × faster than gathers of
+    rows."""
     h, w = img.shape[:2]
     x = x.clip(0, w - 1)
     y = y.clip(0, h - 1)
-    x0, y0 = np.floor(x).astype(int).clip(0, w - 2), np.floor(y).astype(int).clip(0, h - 2)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return ((img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx) * (1 - fy)
-            + (img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
+    x0, y0 = np.floor(x).astype(np.intp).clip(0, w - 2), np.floor(y).astype(np.intp).clip(0, h - 2)
+    fx, fy = (x - x0).astype(x.dtype), (y - y0).astype(y.dtype)  # the weights in the coordinates' precision
+    base = y0 * w + x0
+    planes = img.reshape(h * w, -1)
+    out = np.empty((len(base), planes.shape[1]), np.result_type(img.dtype, fx.dtype))
+    for c in range(planes.shape[1]):
+        p = np.ascontiguousarray(planes[:, c])
+        out[:, c] = ((p.take(base) * (1 - fx) + p.take(base + 1) * fx) * (1 - fy)
+                     + (p.take(base + w) * (1 - fx) + p.take(base + w + 1) * fx) * fy)
+    return out
+
+
+def sample_uv(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """:func:`sample_bilinear` of an (h, w, C) texture at texture coordinates ``uv`` (N, 2) (v up; texel centres at
+    ((j + 0.5) / w, 1 − (i + 0.5) / h))."""
+    h, w = image.shape[:2]
+    return sample_bilinear(image, uv[:, 0] * w - 0.5, (1.0 - uv[:, 1]) * h - 0.5)
 
 
 def render_textured(verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray, tex: np.ndarray, K: np.ndarray,
@@ -49,7 +64,6 @@ class TexturedCaster:
             ir = keep[ir]
             bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[it], loc)
             uv = (self.uvs[self.mesh.faces[it]] * bary[:, :, None]).sum(1)
-            S = self.tex.shape[0]
-            img[ir] = sample_bilinear(self.tex, uv[:, 0] * S - 0.5, (1 - uv[:, 1]) * S - 0.5)
+            img[ir] = sample_uv(self.tex, uv)
             hit[ir] = True
         return img.reshape(h, w, 3), hit.reshape(h, w)

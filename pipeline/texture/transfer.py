@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.render.raycast import MeshCaster
+from pipeline.render.textured import sample_uv
 
 
 @dataclass
@@ -70,23 +71,6 @@ def carried(texture: np.ndarray, rows: np.ndarray, uvs: np.ndarray, n: int) -> t
     """``texture`` (side, side, C) sampled at the uvs of :func:`carried_uvs` for ``n`` points: values (n, C), 0 where
     not found, and whether each was found (n,)."""
     values, found = np.zeros((n, texture.shape[2]), np.float32), np.zeros(n, bool)
-    values[rows] = bilinear(texture, uvs)
+    values[rows] = sample_uv(texture, uvs)
     found[rows] = True
     return values, found
-
-
-def bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(K, C) float32 bilinear samples of a (side, side, C) texture (side ≥ 2) at ``uv`` (K, 2) (texel centres at
-    ((c + 0.5) / side, 1 − (r + 0.5) / side)), clamped to its border; channel by channel, from flat planes."""
-    side, channels = texture.shape[0], texture.shape[2]
-    x = np.clip(uv[:, 0] * side - 0.5, 0, side - 1)
-    y = np.clip((1.0 - uv[:, 1]) * side - 0.5, 0, side - 1)
-    x0, y0 = np.minimum(x.astype(np.intp), side - 2), np.minimum(y.astype(np.intp), side - 2)
-    fx, fy = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
-    corners = [(0, (1 - fx) * (1 - fy)), (1, fx * (1 - fy)), (side, (1 - fx) * fy), (side + 1, fx * fy)]
-    base = y0 * side + x0
-    out = np.empty((len(uv), channels), np.float32)
-    for c in range(channels):
-        plane = np.ascontiguousarray(texture[..., c], np.float32).ravel()
-        out[:, c] = sum(plane.take(base + step) * weight for step, weight in corners)
-    return out

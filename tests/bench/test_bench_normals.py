@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from bench.normals import bilinear, normal_errors, read_glb, shaded_normals
+from bench.normals import normal_errors, read_glb, shaded_normals
 from pipeline.render.raycast import MeshCaster
+from pipeline.render.textured import sample_uv
 from pipeline.texture.export import export_textured
 from tests.pipeline.texture.test_export_maps import sphere_maps  # noqa: F401 - a fixture
 
@@ -51,8 +52,8 @@ def test_the_glb_as_a_viewer_shades_it_is_the_sphere(sphere_maps, tmp_path):  # 
 def test_bilinear_samples_texel_centres_and_clamps():
     image = np.arange(12, dtype=float).reshape(3, 4, 1)
     centre = np.array([[(1 + 0.5) / 4, 1 - (2 + 0.5) / 3]])  # texel (row 2, col 1)
-    assert bilinear(image, centre)[0, 0] == pytest.approx(9.0)
-    assert bilinear(image, np.array([[-1.0, 2.0]]))[0, 0] == pytest.approx(0.0)
+    assert sample_uv(image, centre)[0, 0] == pytest.approx(9.0)
+    assert sample_uv(image, np.array([[-1.0, 2.0]]))[0, 0] == pytest.approx(0.0)
 
 
 def test_the_level_table_against_a_truth(sphere_maps, tmp_path):  # noqa: F811

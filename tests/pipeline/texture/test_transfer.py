@@ -7,22 +7,23 @@ import pytest
 import torch
 import trimesh
 
+from pipeline.render.textured import sample_uv
 from pipeline.texture import stage as texture_stage
 from pipeline.texture.config import TextureConfig
 from pipeline.texture.stage import Carry, texels_per_unit, texture_mesh
-from pipeline.texture.transfer import BakedMesh, bilinear, carried, carried_uvs
+from pipeline.texture.transfer import BakedMesh, carried, carried_uvs
 from tests.pipeline.texture.test_texture import W, _heldout_psnr, noise_cow_photos
 
 
 def test_bilinear_is_grid_samples():
-    """The lookup is ``grid_sample``'s (align_corners=False, border padding) at the same uvs, inside and outside."""
+    """The texture lookup is ``grid_sample``'s (align_corners=False, border padding) at the same uvs, in and out."""
     rng = np.random.default_rng(0)
     tex = rng.random((16, 16, 3)).astype(np.float32)
     uv = rng.uniform(-0.1, 1.1, (500, 2))
     grid = torch.from_numpy(np.stack([2 * uv[:, 0] - 1, 1 - 2 * uv[:, 1]], 1)).float()[None, None]
     want = torch.nn.functional.grid_sample(torch.from_numpy(tex).permute(2, 0, 1)[None], grid, mode="bilinear",
                                            padding_mode="border", align_corners=False)[0, :, 0].T.numpy()
-    assert np.allclose(bilinear(tex, uv), want, atol=1e-5)
+    assert np.allclose(sample_uv(tex, uv), want, atol=1e-5)
 
 
 def _two_sided_slab(thickness: float) -> BakedMesh:
