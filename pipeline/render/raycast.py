@@ -4,6 +4,8 @@ place them. ``tests/pipeline/render/zbuffer.py`` (a numpy z-buffer) is its test 
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import trimesh
 
@@ -66,26 +68,30 @@ class MeshCaster:
         """(height, width) ray depth (distance along the unit ray) of the first hit through every pixel centre of a
         pinhole camera (K, world→camera rotation R, camera centre); inf where the ray meets nothing. Only the rays
         of :func:`projected_box` are cast (all when it bounds nothing)."""
-        box = projected_box(self.mesh.vertices, K, R, center, width, height)
-        y0, y1, x0, x1 = (0, height, 0, width) if box is None else box
-        depth = np.full((height, width), np.inf)
-        if y1 > y0 and x1 > x0:
-            o, d = pixel_center_rays(K, R, center, width, height, (y0, y1, x0, x1))
+
+        def depths(o: np.ndarray, d: np.ndarray) -> np.ndarray:
             ray, _, loc = self.first_hits(o, d)
-            inside = np.full(len(d), np.inf)
-            inside[ray] = np.linalg.norm(loc - o[ray], axis=1)
-            depth[y0:y1, x0:x1] = inside.reshape(y1 - y0, x1 - x0)
-        return depth
+            out = np.full(len(d), np.inf)
+            out[ray] = np.linalg.norm(loc - o[ray], axis=1)
+            return out
+
+        return self._in_box(K, R, center, width, height, depths, np.inf)
 
     def covered_pixels(self, K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int, height: int) -> np.ndarray:
         """(height, width) bool: the pixels whose centre's ray meets the mesh; only the rays of
         :func:`projected_box` are cast (all when it bounds nothing)."""
+        return self._in_box(K, R, center, width, height, self.any_hit, False)
+
+    def _in_box(self, K: np.ndarray, R: np.ndarray, center: np.ndarray, width: int, height: int,
+                per_ray: Callable[[np.ndarray, np.ndarray], np.ndarray], outside) -> np.ndarray:
+        """(height, width): ``per_ray`` of the pixel-centre rays of :func:`projected_box` (origins, directions →
+        one value per ray), ``outside`` at every other pixel (no ray there can meet the mesh)."""
         box = projected_box(self.mesh.vertices, K, R, center, width, height)
         y0, y1, x0, x1 = (0, height, 0, width) if box is None else box
-        out = np.zeros((height, width), bool)
+        out = np.full((height, width), outside)
         if y1 > y0 and x1 > x0:
             o, d = pixel_center_rays(K, R, center, width, height, (y0, y1, x0, x1))
-            out[y0:y1, x0:x1] = self.any_hit(o, d).reshape(y1 - y0, x1 - x0)
+            out[y0:y1, x0:x1] = per_ray(o, d).reshape(y1 - y0, x1 - x0)
         return out
 
 

@@ -24,6 +24,7 @@ which xatlas charts side by side on all cores and, each chart growing within a s
 same atlas utilisation."""
 
 MAX_PIECES = 16
+"""The most pieces a mesh is charted as (:data:`PIECE_FACES`): each piece's border is a chart border."""
 
 RECHART_FACES = 100_000
 """Meshes of more faces are not charted again when their atlas comes out past the largest side: charting again

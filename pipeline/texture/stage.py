@@ -332,8 +332,8 @@ def run(job: Job) -> Done:
                                                cfg, field, field_frame, field_gain, clipped, occupancy, carry)
         normals, maps = stats.pop("normals"), stats.pop("maps", None)
         if folder == ws.mesh and carrying:  # the normals grown around the charts, as the colours are
-            grown = None if maps is None or maps.object_normals is None else \
-                dilate_gutter(maps.object_normals, (maps.object_normals[..., :3] != 0).any(-1), cfg.gutter)[0]
+            image = None if maps is None else maps.object_normals()
+            grown = None if image is None else dilate_gutter(image, (image[..., :3] != 0).any(-1), cfg.gutter)[0]
             baked["default"] = BakedMesh(nv, nf, uvs, tex, None if maps is None else maps.occlusion, grown)
         out_v = to_sfm(nv, cams.scale_mat) if cfg.frame == "sfm" else nv
         if cfg.frame == "sfm":  # directions turn with the frame (a similarity: scale, rotation, shift)

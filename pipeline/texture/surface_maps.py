@@ -177,8 +177,6 @@ def ambient_occlusion(logit_fn: LogitFn, points: np.ndarray, normals: np.ndarray
     return ao.double().numpy().clip(0.0, 1.0)
 
 
-
-
 KnownNormals = tuple[np.ndarray, np.ndarray]
 """Normals known elsewhere at M texel points: (x, y, z, sure) (M, 4) and where they were found (M,) bool."""
 
@@ -211,17 +209,14 @@ def object_normals(surface: SurfaceField, points: np.ndarray, mesh_normals: np.n
 
 def bake_normal_map(surface: SurfaceField, side: int, rows: np.ndarray, cols: np.ndarray, points: np.ndarray,
                     frames: np.ndarray, known: KnownNormals | None = None
-                    ) -> tuple[np.ndarray, float, np.ndarray]:
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(side, side, 3) normal-map colours of the texels at (``rows``, ``cols``) with surface ``points`` (M, 3) and
     tangent ``frames`` (M, 3, 3) (:func:`texel_frames`): the field's normal (:func:`object_normals`, ``known``: see
-    there) in tangent space; other texels flat. Also the share of texels the field was sure at, and the normals
-    themselves with that sureness as a (side, side, 4) image (x, y, z, sure; 0 off the texels)."""
+    there) in tangent space; other texels flat. Also those normals (M, 3) and where the field was sure (M,)."""
     normals, sure = object_normals(surface, points, frames[:, 2], known)
     out = np.tile(FLAT_NORMAL, (side, side, 1))
     out[rows, cols] = encode_normals(to_tangent_space(frames, normals))
-    image = np.zeros((side, side, 4), np.float32)
-    image[rows, cols] = np.concatenate([normals, sure[:, None]], 1)
-    return out, float(sure.mean()) if len(sure) else 1.0, image
+    return out, normals, sure
 
 
 def bake_occlusion_map(logit_fn: LogitFn, side: int, rows: np.ndarray, cols: np.ndarray, points: np.ndarray,
@@ -288,9 +283,18 @@ class SurfaceMaps:
     occlusion: np.ndarray | None
     tangents: np.ndarray
     sure: float
-    object_normals: np.ndarray | None = None
-    """The normal map's normals in the mesh's frame and their sureness (side, side, 4) (:func:`bake_normal_map`; 0 off
-    the charts); None without a normal map."""
+    texel_normals: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+    """The normal map's texels (rows (M,), cols (M,)), their normals in the mesh's frame (M, 3) and where the field
+    was sure (M,) (:func:`bake_normal_map`); None without a normal map."""
+
+    def object_normals(self) -> np.ndarray | None:
+        """:attr:`texel_normals` as a (side, side, 4) image (x, y, z, sure; 0 off the texels); None without them."""
+        if self.texel_normals is None:
+            return None
+        rows, cols, normals, sure = self.texel_normals
+        image = np.zeros((*self.normal.shape[:2], 4), np.float32)
+        image[rows, cols] = np.concatenate([normals, sure[:, None]], 1)
+        return image
 
 
 def bake_surface_maps(surface: SurfaceField, verts: np.ndarray, faces: np.ndarray, uvs: np.ndarray,
@@ -303,12 +307,14 @@ def bake_surface_maps(surface: SurfaceField, verts: np.ndarray, faces: np.ndarra
     atlas's texels in ``np.nonzero(fid >= 0)``'s order (:func:`object_normals`); ``known_occlusion``: see
     :func:`bake_occlusion_map`."""
     tangents = vertex_tangents(verts, faces, uvs, normals)
-    normal, sure, occlusion, image = None, 1.0, None, None
+    normal, sure, occlusion, texel_normals = None, 1.0, None, None
     if normal_map:
         r, c, pts, _, face, bary = texel_geometry(fid, uvs, faces, verts, normals, with_bary=True)
         frames = texel_frames(faces, face, bary, normals, tangents)
-        normal, sure, image = bake_normal_map(surface, fid.shape[0], r, c, pts, frames, known_normals)
+        normal, field_normal, field_sure = bake_normal_map(surface, fid.shape[0], r, c, pts, frames, known_normals)
         normal = dilate_gutter(normal, fid >= 0, gutter)[0]
+        sure = float(field_sure.mean()) if len(field_sure) else 1.0
+        texel_normals = (r, c, field_normal, field_sure)
     if occlusion_reach > 0:
         half = max(fid.shape[0] // 2, 1)
         coarse = rasterize_atlas(uvs, faces, half)
@@ -316,4 +322,4 @@ def bake_surface_maps(surface: SurfaceField, verts: np.ndarray, faces: np.ndarra
         occlusion = bake_occlusion_map(surface.logit, half, r, c, pts, nrm, occlusion_reach, 2 * surface.cell,
                                        known_occlusion)
         occlusion = dilate_gutter(occlusion[..., None], coarse >= 0, max(gutter // 2, 1))[0][..., 0]
-    return SurfaceMaps(normal, occlusion, tangents, sure, image)
+    return SurfaceMaps(normal, occlusion, tangents, sure, texel_normals)

@@ -18,7 +18,7 @@ class BakedMesh:
     """A textured mesh: vertices (V, 3), faces (F, 3), uvs (V, 2) in [0, 1] (v up), its colour texture (side, side,
     3) float with row 0 at v = 1 (:func:`pipeline.texture.atlas.rasterize_atlas`'s convention), its occlusion map (any
     side) and its normal map's normals in the mesh's frame with their sureness (side, side, 4)
-    (:class:`pipeline.texture.surface_maps.SurfaceMaps`'s ``object_normals``); None: not baked."""
+    (:meth:`pipeline.texture.surface_maps.SurfaceMaps.object_normals`); None: not baked."""
 
     verts: np.ndarray
     faces: np.ndarray
