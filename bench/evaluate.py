@@ -43,6 +43,7 @@ SCENES = {
     "sphere_board": ROOT / "configs" / "scenes" / "sphere_checker_board.yaml",
     "e2e": ROOT / "configs" / "scenes" / "e2e_floor.yaml",  # the small torus on a floor (bench/batch.py)
     "white_table": ROOT / "configs" / "scenes" / "white_table.yaml",  # a puck on a white table: no SfM points on it
+    "knobbly": ROOT / "configs" / "scenes" / "knobbly_ball.yaml",  # bumps finer than 25 000 faces hold (normal maps)
 }
 HELDOUT = "heldout_"
 """Prefix of the held-out photos in a photos-only run's folder (sorted after the training photos)."""

@@ -33,7 +33,23 @@ from synth.scene import Effect, Scene, Shape
 
 # ----------------------------------------------------------------------------- shapes
 def sdf(shape: Shape, p: torch.Tensor) -> torch.Tensor:
-    """Signed distance (negative inside) of an analytic shape at points (M, 3)."""
+    """Signed distance (negative inside) of an analytic shape at points (M, 3); with a relief, the distance less
+    the bumps' height (no longer a true distance: :func:`lipschitz` bounds its slope)."""
+    d = _plain_sdf(shape, p)
+    if shape.relief:
+        w = 2 * math.pi * shape.relief_scale
+        d = d - shape.relief * torch.sin(w * p).prod(dim=-1)
+    return d
+
+
+def lipschitz(shape: Shape) -> float:
+    """An upper bound on the slope of :func:`sdf` (1 for a true distance): sphere tracing steps by the distance
+    over it, so that bumps are not stepped through."""
+    return 1.0 + abs(shape.relief) * 2 * math.pi * shape.relief_scale * math.sqrt(3)
+
+
+def _plain_sdf(shape: Shape, p: torch.Tensor) -> torch.Tensor:
+    """Signed distance of the shape without its relief."""
     c = torch.tensor(shape.center, dtype=p.dtype)
     q = p - c
     k = shape.kind
@@ -76,6 +92,8 @@ class MeshShape:
     """A textured mesh scaled into the unit sphere; ray casting with trimesh (Embree when installed)."""
 
     def __init__(self, shape: Shape, base_dir: str):
+        if shape.relief:
+            raise ValueError("shape.relief is for analytic shapes; a mesh carries its own relief")
         path = Path(shape.path)
         if not path.is_absolute():
             path = Path(base_dir) / path
@@ -127,14 +145,15 @@ class MeshShape:
 def sphere_trace(shape: Shape, o: torch.Tensor, d: torch.Tensor, iters: int = 256, eps: float = 1e-5):
     """Sphere tracing of the shape's SDF along rays inside the unit sphere: hit (M,) bool and ray depth t (M,)."""
     near, far, valid = sphere_bounds(o, d, 1.0)
+    slope = lipschitz(shape)
     t = near.clone()
     alive = valid.clone()
     hit = torch.zeros_like(valid)
-    for _ in range(iters):
+    for _ in range(math.ceil(iters * slope)):
         idx = alive.nonzero().view(-1)
         if idx.numel() == 0:
             break
-        s = sdf(shape, o[idx] + t[idx, None] * d[idx])
+        s = sdf(shape, o[idx] + t[idx, None] * d[idx]) / slope
         t[idx] += s
         h = s.abs() < eps
         hit[idx[h]] = True

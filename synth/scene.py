@@ -39,6 +39,11 @@ class Shape:
     """mesh: scale so its bounding sphere has this radius (centred at the origin)."""
     up: str = "z"
     """mesh: the file's up axis, 'z' (used as is) or 'y' (rotated so that +y points up, +z in the scene)."""
+    relief: float = 0.0
+    """analytic shapes: height of bumps raised on the surface (canonical units; 0: none), a knobbly, hammered
+    surface: the distance less relief · sin(2π·relief_scale·x) sin(…y) sin(…z)."""
+    relief_scale: float = 12.0
+    """analytic shapes: bumps per unit length along each axis (one bump and one dip per period)."""
 
 
 @dataclass

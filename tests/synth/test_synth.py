@@ -322,3 +322,29 @@ def test_the_stool_scene_mesh_is_one_closed_solid():
     assert mesh.area == pytest.approx(boxes - 2 * 4 * leg_w * leg_d)  # less the legs' tops and the seat's underside
     v, f = boxes_surface([SEAT, *LEGS])
     assert trimesh.Trimesh(v, f).area == pytest.approx(mesh.area)  # the committed file is the generator's
+
+
+def test_a_relief_raises_bumps_that_sphere_tracing_meets_first():
+    """A sphere with bumps: the distance less the bumps' height, and rays stop at the first crossing of that
+    surface (found by dense sampling), not beyond a bump they stepped over."""
+    import torch
+
+    from synth.render import sdf, sphere_trace
+    from synth.scene import Shape
+
+    ball = Shape(kind="sphere", radius=0.5, relief=0.05, relief_scale=6.0)
+    p = torch.tensor([[0.5, 0.0, 0.0], [0.5 / 3**0.5] * 3], dtype=torch.float64)
+    bumps = 0.05 * torch.sin(2 * torch.pi * 6.0 * p).prod(dim=-1)
+    assert torch.allclose(sdf(ball, p), -bumps)
+    torch.manual_seed(0)
+    o = torch.randn(400, 3, dtype=torch.float64)
+    o = 0.99 * o / o.norm(dim=1, keepdim=True)  # from the bounding sphere, towards points near the ball's edge
+    aim = 0.45 * torch.randn(400, 3, dtype=torch.float64).clamp(-1, 1)
+    d = (aim - o) / (aim - o).norm(dim=1, keepdim=True)
+    hit, t = sphere_trace(ball, o, d)
+    steps = torch.linspace(0, 2, 4001, dtype=torch.float64)
+    along = sdf(ball, (o[:, None] + steps[None, :, None] * d[:, None]).reshape(-1, 3)).view(400, -1)
+    inside = along < 0
+    first = torch.where(inside.any(1), steps[inside.int().argmax(1)], torch.inf)
+    assert hit.sum() > 100 and torch.equal(hit, torch.isfinite(first))
+    assert (t[hit] - first[hit]).abs().max() < 1e-3
