@@ -29,7 +29,7 @@ class MasksConfig:
     """Height above the floor (unit-sphere radii) under which a pixel's ray must pass for the floor rounds."""
     floor_settle: float = 0.002
     """The floor rounds stop once a round changes fewer than this fraction of the masks' object pixels."""
-    grabcut_iters: int = 5
+    grabcut_iters: int = 3
     """GrabCut iterations per pass."""
     grabcut_margin: float = 0.05
     """GrabCut's box around the uncertain pixels, widened by this fraction of the image side; 1: whole image."""
