@@ -88,10 +88,13 @@ def _make_closed(ms) -> None:
     ms.meshing_remove_duplicate_faces()
     ms.meshing_repair_non_manifold_edges()
     ms.meshing_repair_non_manifold_vertices()
-    try:
-        ms.meshing_close_holes(maxholesize=30)
-    except pymeshlab.PyMeshLabException:  # needs an edge-manifold mesh; leave the holes otherwise
-        pass
+    # measuring rebuilds the adjacency that the repairs leave stale, and close_holes needs an edge-manifold mesh:
+    # on stale adjacency it crashed the process (SIGSEGV) on a decimated DTU mesh of the quality preset
+    if ms.get_topological_measures()["non_two_manifold_edges"] == 0:
+        try:
+            ms.meshing_close_holes(maxholesize=30)
+        except pymeshlab.PyMeshLabException:  # leave the holes where it cannot close them
+            pass
     ms.set_selection_none()  # close_holes selects its new faces, and later filters would act on those only
     ms.meshing_remove_unreferenced_vertices()
 

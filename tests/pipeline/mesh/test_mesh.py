@@ -329,3 +329,41 @@ def test_a_large_photo_casts_through_a_coarser_grid_and_still_sees_what_faces_it
     cos = (to_cam * ball.face_normals).sum(1) / np.linalg.norm(to_cam, axis=1)
     assert not (coarse & ~full).any() and (full & ~coarse).any()  # the coarse grid was used
     assert coarse[cos > 0.5].all() and full[cos > 0.5].all() and (cos > 0.5).sum() > 50
+
+
+def test_holes_are_closed_after_the_adjacency_is_measured_and_only_on_an_edge_manifold_mesh():
+    """The repairs leave pymeshlab's adjacency stale, and closing holes on it crashed the process (SIGSEGV) on a
+    decimated DTU mesh of the quality preset: _make_closed measures the topology (which rebuilds the adjacency)
+    before it closes holes, and leaves them open where an edge still has more than two faces."""
+    import pymeshlab
+
+    from pipeline.mesh.stage import _make_closed
+
+    class Recorded:
+        """A MeshSet whose calls are recorded; ``edges``: the non-manifold edges its measures report."""
+
+        def __init__(self, edges: int | None = None):
+            self.ms, self.calls, self.edges = pymeshlab.MeshSet(), [], edges
+
+        def __getattr__(self, name):
+            call = getattr(self.ms, name)
+
+            def recorded(*args, **kwargs):
+                self.calls.append(name)
+                out = call(*args, **kwargs)
+                return {**out, "non_two_manifold_edges": self.edges} if self.edges is not None and \
+                    name == "get_topological_measures" else out
+            return recorded
+
+    v, f, _ = _holed_sphere_and_speck()
+    for edges, closes in ((None, True), (1, False)):
+        ms = Recorded(edges)
+        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f.astype(np.int32)))
+        _make_closed(ms)
+        repairs = max(ms.calls.index(n) for n in ("meshing_repair_non_manifold_edges",
+                                                    "meshing_repair_non_manifold_vertices"))
+        assert repairs < ms.calls.index("get_topological_measures")
+        assert ("meshing_close_holes" in ms.calls) == closes
+        if closes:
+            assert ms.calls.index("get_topological_measures") < ms.calls.index("meshing_close_holes")
+            assert ms.ms.current_mesh().face_number() > len(f)  # the hole's faces were added
