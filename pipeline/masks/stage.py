@@ -493,13 +493,13 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
         if sal is not None:  # a probable start inside the hull's bound, never past it
             labs = [vote_prior(lab, s) for lab, s in zip(labs, sal)]
         if region is None:
-            new = grabcut_all(imgs, labs, cfg.grabcut_iters, cfg.grabcut_margin)
+            new = grabcut_all(imgs, labs, cfg.round_iters, cfg.grabcut_margin)
         else:  # GrabCut on the box of the region's undecided pixels, the rest of that box fixed as it is
             labs = [np.where(r, lab, np.where(c, cv2.GC_FGD, cv2.GC_BGD)).astype(np.uint8)
                     for r, lab, c in zip(region, labs, current)]
             boxes = [uncertain_box(lab, cfg.grabcut_margin, r) for lab, r in zip(labs, region)]
             todo = [i for i, b in enumerate(boxes) if b is not None]
-            cut = grabcut_all([imgs[i] for i in todo], [labs[i] for i in todo], cfg.grabcut_iters,
+            cut = grabcut_all([imgs[i] for i in todo], [labs[i] for i in todo], cfg.round_iters,
                               boxes=[boxes[i] for i in todo])
             new = list(current)
             for i, m in zip(todo, cut):
