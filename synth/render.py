@@ -43,9 +43,10 @@ def sdf(shape: Shape, p: torch.Tensor) -> torch.Tensor:
 
 
 def lipschitz(shape: Shape) -> float:
-    """An upper bound on the slope of :func:`sdf` (1 for a true distance): sphere tracing steps by the distance
-    over it, so that bumps are not stepped through."""
-    return 1.0 + abs(shape.relief) * 2 * math.pi * shape.relief_scale * math.sqrt(3)
+    """An upper bound on the slope of :func:`sdf` (1 for a true distance; a union's or difference's the largest of
+    its parts'): sphere tracing steps by the distance over it, so that bumps are not stepped through."""
+    parts = max([1.0] + [lipschitz(Shape(**d)) for d in shape.parts])
+    return parts + abs(shape.relief) * 2 * math.pi * shape.relief_scale * math.sqrt(3)
 
 
 def _plain_sdf(shape: Shape, p: torch.Tensor) -> torch.Tensor:
