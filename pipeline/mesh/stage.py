@@ -88,8 +88,9 @@ def _make_closed(ms) -> None:
     ms.meshing_remove_duplicate_faces()
     ms.meshing_repair_non_manifold_edges()
     ms.meshing_repair_non_manifold_vertices()
-    # measuring rebuilds the adjacency that the repairs leave stale, and close_holes needs an edge-manifold mesh:
-    # on stale adjacency it crashed the process (SIGSEGV) on a decimated DTU mesh of the quality preset
+    # close_holes needs an edge-manifold mesh and up-to-date adjacency, which the repairs leave stale (on stale
+    # adjacency it can end the process with SIGSEGV, as on DTU scan24's decimated mesh of the quality preset);
+    # measuring the topology rebuilds the adjacency
     if ms.get_topological_measures()["non_two_manifold_edges"] == 0:
         try:
             ms.meshing_close_holes(maxholesize=30)

@@ -332,9 +332,9 @@ def test_a_large_photo_casts_through_a_coarser_grid_and_still_sees_what_faces_it
 
 
 def test_holes_are_closed_after_the_adjacency_is_measured_and_only_on_an_edge_manifold_mesh():
-    """The repairs leave pymeshlab's adjacency stale, and closing holes on it crashed the process (SIGSEGV) on a
-    decimated DTU mesh of the quality preset: _make_closed measures the topology (which rebuilds the adjacency)
-    before it closes holes, and leaves them open where an edge still has more than two faces."""
+    """The repairs leave pymeshlab's adjacency stale, and closing holes on it can end the process (SIGSEGV; DTU
+    scan24's decimated mesh of the quality preset does): _make_closed measures the topology (which rebuilds the
+    adjacency) before it closes holes, and leaves them open where an edge still has more than two faces."""
     import pymeshlab
 
     from pipeline.mesh.stage import _make_closed
