@@ -31,7 +31,7 @@ class MasksConfig:
     """The floor rounds stop once a round changes fewer than this fraction of the masks' object pixels."""
     grabcut_iters: int = 5
     """GrabCut iterations of the first pass (from the geometry's seeds)."""
-    round_iters: int = 3
+    round_iters: int = 5
     """GrabCut iterations per pass in the vote and floor rounds (inside the hull's bound)."""
     grabcut_margin: float = 0.05
     """GrabCut's box around the uncertain pixels, widened by this fraction of the image side; 1: whole image."""
