@@ -51,11 +51,10 @@ def stamped_seconds(ws: Path) -> float:
 def level_psnrs(ws: Path, every: int = 5) -> dict[str, float]:
     """Mean PSNR (dB) of the default mesh's and each level's ``textured.glb`` rendered at every ``every``-th photo of
     ``ws`` (its cameras), against the photo within its mask."""
-    import cv2
     import numpy as np
 
     sys.path.insert(0, str(ROOT))
-    from bench.evaluate import render_psnr
+    from bench.evaluate import _read_mask, _read_rgb, render_psnr
     from dvr.cameras import load_cameras
     from dvr.data import list_images
     from pipeline.texture.export import read_textured
@@ -69,8 +68,7 @@ def level_psnrs(ws: Path, every: int = 5) -> dict[str, float]:
         mesh, texture = read_textured(glb)
         scores = []
         for i in range(0, len(paths), every):
-            photo = cv2.imread(str(paths[i]))[..., ::-1].astype(np.float32) / 255
-            mask = cv2.imread(str(ws / "masks" / f"{paths[i].stem}.png"), cv2.IMREAD_GRAYSCALE) > 127
+            photo, mask = _read_rgb(paths[i]), _read_mask(ws / "masks" / f"{paths[i].stem}.png")
             scores.append(render_psnr(mesh, texture, cams.K[i], cams.R[i], cams.sfm_centers[i], photo, mask))
         out[name] = float(np.mean(scores))
     return out
