@@ -187,8 +187,10 @@ def _upright_wall(x, n=2000, half=2.0):
     return np.stack([x + RNG.normal(0, 0.002, n), RNG.uniform(-half, half, n), RNG.uniform(-half, half, n)], 1)
 
 
-def _seen_ball(n, centre, radius, min_x=-0.8):
-    """Points on a ball where cameras in front of it (at large x) see them: its unit normal's x above ``min_x``."""
+def _seen_ball(n, centre, radius, min_x=-0.85):
+    """Points on a ball where cameras in front of it (at large x) see them: its unit normal's x above ``min_x``. The
+    default is what :func:`_arc`'s cameras, 60° either side of +x, see: normals up to about 150° from +x (cos −0.87),
+    the ball's side down to near the wall it touches, whatever the draw."""
     u = RNG.normal(size=(4 * n, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     return np.asarray(centre) + radius * u[u[:, 0] > min_x][:n]
