@@ -130,13 +130,22 @@ def _tracks(ws: Workspace, names: list[str], max_error_ratio: float = 0.0):
     return xyz, obs
 
 
-def object_region(cams: Cameras, i: int, h: int, w: int, footprint=None) -> np.ndarray:
+def object_region(cams: Cameras, i: int, h: int, w: int, footprint=None, sphere: np.ndarray | None = None
+                  ) -> np.ndarray:
     """(h, w) bool: pixels whose ray passes through the unit sphere ABOVE the support plane (all of the sphere
-    without one) and, given the object's ``footprint`` prism (:func:`pipeline.scene.support.footprint_prism`), through
-    that. The object lies there by construction: every other pixel is background."""
+    without one; :func:`sphere_region`, or ``sphere`` when already computed) and, given the object's ``footprint``
+    prism (:func:`pipeline.scene.support.footprint_prism`), through that. The object lies there by construction:
+    every other pixel is background."""
+    region = sphere_region(cams, i, h, w) if sphere is None else sphere
+    if footprint is None:
+        return region
+    return region & MeshCaster(footprint).covered_pixels(cams.K[i], cams.R[i], cams.centers[i], w, h)
+
+
+def sphere_region(cams: Cameras, i: int, h: int, w: int) -> np.ndarray:
+    """(h, w) bool: pixels of view ``i`` whose ray passes through the unit sphere above the support plane (all of the
+    sphere without one)."""
     o, d = pixel_center_rays(cams.K[i], cams.R[i], cams.centers[i], w, h)
-    through = np.ones(len(d), bool) if footprint is None else MeshCaster(footprint).covered_pixels(
-        cams.K[i], cams.R[i], cams.centers[i], w, h).ravel()
     near, far, hit = (x.numpy() for x in sphere_bounds(torch.from_numpy(o.copy()), torch.from_numpy(d)))
     if cams.ground is not None:
         h0 = plane_height(cams.ground, o)  # camera height (the same for every ray)
@@ -147,7 +156,7 @@ def object_region(cams: Cameras, i: int, h: int, w: int, footprint=None) -> np.n
         above_to = np.where((h0 >= 0) & (rate < 0), t_cross, np.inf)  # a camera above sinks below at t_cross
         near, far = np.maximum(near, above_from), np.minimum(far, above_to)
         hit &= (h0 >= 0) | (rate > 0)
-    return (hit & (far > near) & through).reshape(h, w)
+    return (hit & (far > near)).reshape(h, w)
 
 
 def support_in_sphere(cams: Cameras, i: int, h: int, w: int) -> np.ndarray:
@@ -226,12 +235,12 @@ def grabcut_all(imgs: list[np.ndarray], labels: list[np.ndarray], iters: int, ma
 
 
 def seed_labels(cams: Cameras, i: int, h: int, w: int, pts_n: np.ndarray | None, vis: list[int] | None,
-                r: int, footprint=None) -> np.ndarray:
+                r: int, footprint=None, sphere: np.ndarray | None = None) -> np.ndarray:
     """GrabCut labels of view ``i`` from geometry: outside the object region (:func:`object_region`) background;
     the sparse points it observes drawn as discs — object inside the sphere (radius < 0.9) and above the support,
     background beyond ``BACKGROUND_RADIUS`` or on (or below) the support plane."""
     lab = np.full((h, w), cv2.GC_PR_BGD, np.uint8)
-    region = object_region(cams, i, h, w, footprint)
+    region = object_region(cams, i, h, w, footprint, sphere)
     lab[region] = cv2.GC_PR_FGD
     lab[~region] = cv2.GC_BGD
     if pts_n is not None and vis is not None and len(vis):
@@ -251,13 +260,13 @@ def seed_labels(cams: Cameras, i: int, h: int, w: int, pts_n: np.ndarray | None,
     return lab
 
 
-def soften_beyond(lab: np.ndarray, cams: Cameras, i: int, footprint) -> np.ndarray:
+def soften_beyond(lab: np.ndarray, cams: Cameras, i: int, footprint, sphere: np.ndarray | None = None) -> np.ndarray:
     """View ``i``'s GrabCut labels ``lab`` (h, w), in place: the pixels that were probably object but whose ray
     misses the points' ``footprint`` prism become probably background (``footprint_union``: GrabCut's colours decide
     there, so a plain part that overhangs the points, a cow's white ear, can stay object, and the table in front of
     the object starts on the background's side). Hard labels stay."""
     h, w = lab.shape
-    lab[(lab == cv2.GC_PR_FGD) & ~object_region(cams, i, h, w, footprint)] = cv2.GC_PR_BGD
+    lab[(lab == cv2.GC_PR_FGD) & ~object_region(cams, i, h, w, footprint, sphere)] = cv2.GC_PR_BGD
     return lab
 
 
@@ -396,12 +405,13 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
                                     background_depths(cams, pts_n, obs, names), cfg.stereo_scale, cfg.stereo_depths,
                                     cfg.stereo_ratio)
     seeds = []
+    spheres = [sphere_region(cams, i, img.shape[0], img.shape[1]) for i, img in enumerate(imgs)]
     for i, (n, img) in enumerate(zip(names, imgs)):
         h, w = img.shape[:2]
         lab = seed_labels(cams, i, h, w, pts_n, obs.get(n) if obs else None, cfg.seed_radius,
-                          None if unite else footprint)
+                          None if unite else footprint, spheres[i])
         if unite:
-            soften_beyond(lab, cams, i, footprint)
+            soften_beyond(lab, cams, i, footprint, spheres[i])
         if stereo is not None:
             inside = lab != cv2.GC_BGD  # the projected sphere
             lab[inside & (stereo[i] == OBJECT)] = cv2.GC_FGD
@@ -428,7 +438,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
             print("masks: " + ("the support plane beyond that footprint is background" if used
                                else "the first masks' hull stands nowhere above the plane: no footprint"))
         for i, img in enumerate(imgs if footprint is not None else []):  # hard background seeds for the vote rounds
-            seeds[i][~object_region(cams, i, img.shape[0], img.shape[1], footprint)] = cv2.GC_BGD
+            seeds[i][~object_region(cams, i, img.shape[0], img.shape[1], footprint, spheres[i])] = cv2.GC_BGD
     current, sil, _ = vote(imgs, seeds, first, cams, cfg, max(1, cfg.vote_rounds), first_hull=first_hull, sal=sal,
                            keep=keep)
     changed = []
