@@ -83,11 +83,13 @@ def near_object(masks: torch.Tensor, px) -> torch.Tensor:
 def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min_views: int = 1,
                  chunk: int = 65536, ground: np.ndarray | None = None, sizes: torch.Tensor | None = None,
                  contact_band: float = 0.0, sparse_views: int = 0, near: torch.Tensor | None = None,
-                 min_framing: int = 1, min_fraction: float = 0.0) -> torch.Tensor:
+                 min_framing: int = 1, min_fraction: float = 0.0, fraction_near: torch.Tensor | None = None
+                 ) -> torch.Tensor:
     """True for points that ≥ ``min_views`` views, and ≥ ``min_fraction`` of the views that see them, see outside their
-    mask (never more than all of those; a fraction lets a capture of many views outvote a few wrong masks), that
-    fewer than ``min_framing`` views see
-    (project inside their image; 1: that no view sees), or that lie below the
+    mask (never more than all of those; a fraction lets a capture of many views outvote a few wrong masks; with
+    ``fraction_near``, a :func:`near_object` map of the masks, ≥ ``min_views`` views that see them outside that map, far
+    from their mask, are enough: the fraction holds near a mask's edge, where a view that lost a thin part votes),
+    that fewer than ``min_framing`` views see (project inside their image; 1: that no view sees), or that lie below the
     support plane ``ground`` (4,) when the object stands on one. Where fewer than ``sparse_views`` views see a point
     (the edge of the working sphere, which only a few photos frame), one view outside is enough: a vote of two
     needs enough voters (and no more than all the views that see it are ever asked). Within ``contact_band`` above
@@ -105,14 +107,22 @@ def outside_hull(points: torch.Tensor, P: torch.Tensor, masks: torch.Tensor, min
     if not 0.0 <= min_fraction <= 1.0:
         raise ValueError(f"outside_hull: min_fraction must lie in [0, 1], got {min_fraction}")
 
+    maps = [m for m in (near, fraction_near) if m is not None]
+
     def outside(p: torch.Tensor) -> torch.Tensor:
         """The test above for one chunk of points."""
-        if near is None:
+        if not maps:
             n_out, n_seen = view_votes(p, P, masks, sizes)
-        else:  # the masks and their sure-background maps read at one projection
-            (n_out, n_far), n_seen = view_votes(p, P, torch.stack([masks, near], dim=1), sizes)
+        else:  # the masks and their distance maps read at one projection
+            votes, n_seen = view_votes(p, P, torch.stack([masks, *maps], dim=1), sizes)
+            n_out = votes[0]
+            n_far = votes[1] if near is not None else None  # views far inside their background
+            n_beyond = votes[-1] if fraction_near is not None else None  # views beyond the fraction's reach
         need = torch.ceil(min_fraction * n_seen - 1e-6).long().clamp(min=min_views)  # 1e-6: 0.1 × 30 is 3, not 4
         need = torch.minimum(need, n_seen).clamp(min=1)
+        if fraction_near is not None:  # far from the masks, min_views views carve whatever the fraction
+            plain = torch.minimum(torch.full_like(n_seen, min_views), n_seen).clamp(min=1)
+            need = torch.where(n_beyond >= plain, torch.ones_like(need), need)
         need = torch.where(n_seen < sparse_views, torch.ones_like(need), need)
         if ground is not None:
             hgt = plane_height(ground, p)

@@ -17,6 +17,8 @@ class MasksConfig:
     """A point is background only when at least this many views see it outside their mask."""
     carve_fraction: Fraction = 0.0
     """A point is background only when this share of the views that see it, too, see it outside their mask; 0: off."""
+    carve_fraction_px: float = 10.0
+    """With carve_fraction: it holds within this many pixels of a view's mask (farther: carve_min_views); 0: all."""
     keep_min_views: int = 3
     """No visual hull carves a sparse point inside the object's sphere that this many views observe; 0: off."""
     settle_height: float = 0.08

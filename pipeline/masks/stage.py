@@ -42,7 +42,7 @@ import torch
 from dvr.atomic import write_image, write_json
 from dvr.cameras import Cameras, load_cameras, plane_height, project_points, sphere_bounds, to_normalized
 from dvr.data import list_images, pad_stack, read_mask
-from dvr.hull import grid_points, hull_logits, mask_lookup
+from dvr.hull import grid_points, hull_logits, mask_lookup, near_object
 from pipeline.errors import StageError
 from pipeline.masks.config import MasksConfig
 from pipeline.masks.saliency import evidence, first_labels, vote_prior
@@ -288,21 +288,25 @@ def kept_points(pts_n: np.ndarray | None, obs: dict | None, cams: Cameras, min_v
 
 @torch.no_grad()
 def visual_hull(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
-                min_fraction: float = 0.0, keep: np.ndarray | None = None, settle: float = 0.0) -> torch.Tensor:
+                min_fraction: float = 0.0, keep: np.ndarray | None = None, settle: float = 0.0,
+                fraction_px: float = 0.0) -> torch.Tensor:
     """:func:`dvr.hull.hull_logits` of ``masks`` (one bool array per view, each its own size; carving with
-    ``min_views`` and ``min_fraction``; nothing below the support plane); the cells holding the points ``keep``
+    ``min_views`` and ``min_fraction``, the fraction only within ``fraction_px`` of a mask when > 0; nothing below the
+    support plane); the cells holding the points ``keep``
     (:func:`kept_points`) stay inside, and its parts lower than ``settle`` above the support plane rest on it
     (:func:`dvr.hull.settled_onto_plane`)."""
-    canvas, sizes = pad_stack([m.astype(np.float32) for m in masks])
-    return hull_logits(torch.from_numpy(cams.P).float(), torch.from_numpy(canvas), res=res, min_views=min_views,
-                       min_fraction=min_fraction, slope_cells=1.0, ground=cams.ground, sizes=torch.from_numpy(sizes),
-                       keep=keep, settle=settle)
+    canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
+    near = near_object(canvas, fraction_px) if fraction_px > 0 and min_fraction > 0 else None
+    return hull_logits(torch.from_numpy(cams.P).float(), canvas, res=res, min_views=min_views,
+                       min_fraction=min_fraction, slope_cells=1.0, ground=cams.ground, sizes=sizes,
+                       keep=keep, settle=settle, fraction_near=near)
 
 
 @torch.no_grad()
 def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
                      logits: torch.Tensor | None = None, min_fraction: float = 0.0,
-                     keep: np.ndarray | None = None, settle: float = 0.0) -> list[np.ndarray]:
+                     keep: np.ndarray | None = None, settle: float = 0.0, fraction_px: float = 0.0
+                     ) -> list[np.ndarray]:
     """Render the visual hull of ``masks`` (:func:`visual_hull`, holding the points ``keep``, resting on the support
     where lower than ``settle``; its ``logits`` when already built) into every view: one bool array per view.
 
@@ -313,8 +317,9 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     import trimesh
     from skimage import measure
 
-    lg = (visual_hull(masks, cams, res, min_views, min_fraction, keep, settle) if logits is None else logits
-          ).cpu().numpy()
+    if logits is None:
+        logits = visual_hull(masks, cams, res, min_views, min_fraction, keep, settle, fraction_px)
+    lg = logits.cpu().numpy()
     if lg.max() <= 0 or lg.min() > 0:
         return [np.full(m.shape, lg.min() > 0) for m in masks]
     v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
@@ -335,7 +340,8 @@ def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, log
     seen over it, is background too. None when no cell stands that high."""
     canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
     P = torch.from_numpy(cams.P)
-    lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction) if logits is None else logits
+    lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction,
+                     fraction_px=cfg.carve_fraction_px) if logits is None else logits
     cells = grid_points(cfg.hull_res, dtype=torch.float64)[lg.reshape(-1).cpu() > 0]
     _, seen = mask_lookup(cells, P, canvas, sizes)  # in front of the camera and inside its own image
     # the hull is only carved where the views see
@@ -427,7 +433,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     # the footprint of the first masks' hull: alone (too few points), or united with the points' prism
     if (used is False or unite) and cfg.footprint_hull_height > 0:
         first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction, keep,
-                                 cfg.settle_height)
+                                 cfg.settle_height, cfg.carve_fraction_px)
         from_hull = hull_footprint(first, cams, cfg, first_hull)
         if unite:
             footprint, used = united_footprint(footprint, from_hull), "sparse points and masks' hull"
@@ -498,7 +504,7 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
     current, sil, changed = start, [], []
     for rnd in range(rounds):
         sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views, first_hull if rnd == 0 else None,
-                               cfg.carve_fraction, keep, cfg.settle_height)
+                               cfg.carve_fraction, keep, cfg.settle_height, cfg.carve_fraction_px)
         labs = [vote_labels(seeds[i], sil[i], kernel) for i in range(len(imgs))]
         if sal is not None:  # a probable start inside the hull's bound, never past it
             labs = [vote_prior(lab, s) for lab, s in zip(labs, sal)]

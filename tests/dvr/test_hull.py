@@ -101,6 +101,29 @@ def test_many_views_outvote_a_few_wrong_masks_with_min_fraction():
             outside_hull(centre, P, masks, min_fraction=bad)
 
 
+def test_the_fraction_holds_only_near_the_masks_with_fraction_near():
+    """``fraction_near``: 20 views see the centre (it projects to each image's centre pixel) and 3 call it
+    background; a fraction of 0.2 keeps it. Where those views' masks end next to it (a thin part they lost, 5 px
+    away) the fraction still keeps it; where they end far from it (30 px) the plain two-view rule carves it."""
+    P = torch.stack([ring_camera(a) for a in np.linspace(0, 2 * np.pi, 20, endpoint=False)])
+    centre = torch.zeros(1, 3)
+
+    def lost(gap: int) -> torch.Tensor:
+        masks = torch.ones(20, 100, 100)
+        masks[:3, :, : 50 + gap] = 0.0  # three views' masks end ``gap`` px right of the centre pixel
+        return masks
+
+    for gap, carved in ((5, False), (30, True)):
+        masks = lost(gap)
+        assert outside_hull(centre, P, masks, min_views=2, min_fraction=0.2).tolist() == [False]
+        assert outside_hull(centre, P, masks, min_views=2, min_fraction=0.2,
+                            fraction_near=near_object(masks, 10)).tolist() == [carved]
+    masks = lost(30)
+    masks[1:3] = 1.0  # one far view alone is fewer than min_views
+    assert outside_hull(centre, P, masks, min_views=2, min_fraction=0.2,
+                        fraction_near=near_object(masks, 10)).tolist() == [False]
+
+
 def test_a_point_too_few_views_frame_is_free_with_min_framing():
     """``min_framing``: a point that one view frames, inside its mask (a close-up's corner of the working sphere),
     stays by default and is free with ``min_framing`` 2; the point both views frame stays with 2 and goes with 3;
