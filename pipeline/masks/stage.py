@@ -302,13 +302,18 @@ def visual_hull(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int
                        keep=keep, settle=settle, fraction_near=near)
 
 
+def carved_hull(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, keep: np.ndarray | None = None
+                ) -> torch.Tensor:
+    """:func:`visual_hull` of ``masks`` by the stage's carving rule (``carve_min_views``; ``carve_fraction`` within
+    ``carve_fraction_px`` of a mask), holding the points ``keep``, resting on the support below ``settle_height``."""
+    return visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction, keep, cfg.settle_height,
+                       cfg.carve_fraction_px)
+
+
 @torch.no_grad()
-def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
-                     logits: torch.Tensor | None = None, min_fraction: float = 0.0,
-                     keep: np.ndarray | None = None, settle: float = 0.0, fraction_px: float = 0.0
-                     ) -> list[np.ndarray]:
-    """Render the visual hull of ``masks`` (:func:`visual_hull`, holding the points ``keep``, resting on the support
-    where lower than ``settle``; its ``logits`` when already built) into every view: one bool array per view.
+def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, logits: torch.Tensor) -> list[np.ndarray]:
+    """Render a visual hull (its ``logits``, :func:`visual_hull`) into every view, each at its mask's size in
+    ``masks``: one bool array per view.
 
     The hull's logit volume becomes a mesh (marching cubes) and the ray of every pixel centre in the box of its
     projection is cast against it (:meth:`pipeline.render.raycast.MeshCaster.covered_pixels`), far faster than
@@ -317,12 +322,10 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, res: int, min_views
     import trimesh
     from skimage import measure
 
-    if logits is None:
-        logits = visual_hull(masks, cams, res, min_views, min_fraction, keep, settle, fraction_px)
     lg = logits.cpu().numpy()
     if lg.max() <= 0 or lg.min() > 0:
         return [np.full(m.shape, lg.min() > 0) for m in masks]
-    v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / res,) * 3)
+    v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / (lg.shape[0] - 1),) * 3)
     hull = trimesh.Trimesh(v - 1.0, f, process=False)
     caster = MeshCaster(hull)
     return [caster.covered_pixels(cams.K[i], cams.R[i], cams.centers[i], W, H)
@@ -432,8 +435,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     first_hull = None  # built once when the footprint and the first vote both need it
     # the footprint of the first masks' hull: alone (too few points), or united with the points' prism
     if (used is False or unite) and cfg.footprint_hull_height > 0:
-        first_hull = visual_hull(first, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction, keep,
-                                 cfg.settle_height, cfg.carve_fraction_px)
+        first_hull = carved_hull(first, cams, cfg, keep)
         from_hull = hull_footprint(first, cams, cfg, first_hull)
         if unite:
             footprint, used = united_footprint(footprint, from_hull), "sparse points and masks' hull"
@@ -503,8 +505,8 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
     kernel = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
     current, sil, changed = start, [], []
     for rnd in range(rounds):
-        sil = hull_silhouettes(current, cams, cfg.hull_res, cfg.carve_min_views, first_hull if rnd == 0 else None,
-                               cfg.carve_fraction, keep, cfg.settle_height, cfg.carve_fraction_px)
+        hull = first_hull if rnd == 0 and first_hull is not None else carved_hull(current, cams, cfg, keep)
+        sil = hull_silhouettes(current, cams, hull)
         labs = [vote_labels(seeds[i], sil[i], kernel) for i in range(len(imgs))]
         if sal is not None:  # a probable start inside the hull's bound, never past it
             labs = [vote_prior(lab, s) for lab, s in zip(labs, sal)]
