@@ -34,6 +34,7 @@ from pipeline.cameras.sfm import (
     verify_again,
     verify_at_poses,
 )
+from pipeline.cameras.visibility import count_conflicts, database_without, misjoined
 from pipeline.colmaplib import write_model
 from pipeline.errors import StageError
 from pipeline.inputs.photos import (
@@ -190,6 +191,7 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
             break
     if best is not None:  # the ladder is over
         best, _ = _mapped_globally(best, made_by, globalled, work, inp, groups, cfg, names, budget, tried)
+        best = _regrouped(best, work, inp, groups, cfg, names, budget, tried)
     _require_credible(None if best is None else best.model, rejected, inp, len(names), cfg.min_registered_fraction)
     return best.model, inp, best.database, best.rung.name, tried
 
@@ -289,6 +291,35 @@ def _global_on_same_matches(work: Path, inp: Path, groups: list[list[str]], rung
     judged = _judge(rec, again.name, time.perf_counter() - t0, steps, err, inp, names, cfg, None, tried,
                     incremental_models(work / rung.name / "models"))
     return None if judged is None else (judged[0], rec, again, database, judged[1])
+
+
+def _regrouped(best: _Kept, work: Path, inp: Path, groups: list[list[str]], cfg: CamerasConfig, names: list[str],
+               budget: float, tried: list) -> _Kept:
+    """The ladder's ``best`` model, or, where it joined a group of photos to the others at the wrong side of the
+    object (:func:`pipeline.cameras.visibility.misjoined`, with ``cfg.regroup``), the incremental mapper's model of
+    the same matches without the pairs that joined them, when that one poses as many photos with at most half the
+    conflicts; stopped past half the ``budget``."""
+    found = misjoined(best.model, best.database) if cfg.regroup else None
+    if found is None:
+        return best
+    group, cut, before = found
+    print(f"cameras: {before} times a point of the model lies in front of one a view observes: "
+          f"{names_or_count([Path(n).stem for n in group])} may be joined to the others at the wrong side of the "
+          f"object (the same pattern on two sides): mapping again without the {len(cut)} pairs that join them",
+          flush=True)
+    t0 = time.perf_counter()
+    database = database_without(best.database, cut, work / "regrouped.db")
+    rung = replace(best.rung, name=f"{best.rung.name}-regrouped", mapper="incremental")
+    rec, _, steps, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed,
+                                  (None, database), sfm_threads(cfg), time.time() + budget / 2)
+    judged = _judge(rec, rung.name, time.perf_counter() - t0, steps, err, inp, names, cfg, None, tried, [])
+    after = None if judged is None else count_conflicts(rec)
+    if judged is None or judged[0]["registered"] < best.registered or after > before / 2:
+        why = "no model" if judged is None else f"{judged[0]['registered']} photos, {after} conflicts"
+        print(f"cameras: the first model is kept ({why} mapped again)")
+        return best
+    print(f"cameras: the model mapped again is kept: {after} conflicts")
+    return _Kept(judged[0]["registered"], judged[0]["mean_reprojection_error"], rec, rung, database)
 
 
 def matched_but_left_out(rec, database: Path) -> list[str]:

@@ -289,10 +289,10 @@ def _run_rung(work: str, images: str, groups: list[list[str]], rung: dict, camer
               min_mapping: float = 0.0) -> None:
     """Child process: features (reused when another rung made them), matches (likewise), mapping; the largest
     model is written to ``work/<rung>/model`` and its timings to ``work/<rung>/result.json``. ``base``: (model
-    folder, its database) to continue from instead (the ``extend`` mapper). Features and matches use every core
-    whatever ``threads`` says: each photo's features and each pair's matches come out the same on any number of
-    threads (each pair's RANSAC is seeded alone; photos are numbered by name, :func:`number_by_name`); ``threads``
-    is the mapper's."""
+    folder, its database) to continue from instead (the ``extend`` mapper), or ("", a database) to map. Features
+    and matches use every core whatever ``threads`` says: each photo's features and each pair's matches come out the
+    same on any number of threads (each pair's RANSAC is seeded alone; photos are numbered by name,
+    :func:`number_by_name`); ``threads`` is the mapper's."""
     from pipeline.colmaplib import info_to_stderr
 
     info_to_stderr()  # COLMAP's info lines are this rung's log
@@ -340,11 +340,12 @@ def _map_rung(work: Path, images: Path, r: Rung, db: Path, seed: int, base: str,
 
 
 def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, camera_model: str, matching: str,
-             seed: int = 0, base: tuple[Path, Path] | None = None, threads: int = -1, deadline: float | None = None,
-             min_mapping: float | None = None):
+             seed: int = 0, base: tuple[Path | None, Path] | None = None, threads: int = -1,
+             deadline: float | None = None, min_mapping: float | None = None):
     """Run one rung in a child process (``python -m pipeline.cameras.sfm``; COLMAP's log goes to ``work/<rung>.log``,
     a progress line every :data:`~pipeline.messages.PROGRESS_EVERY` s); ``base``: (model folder, its
-    database) for the ``extend`` mapper to continue from; ``threads``: the mapper's threads (-1: all cores; 1: the
+    database) for the ``extend`` mapper to continue from, or (None, a database) to map that database's matches
+    afresh; ``threads``: the mapper's threads (-1: all cores; 1: the
     same photos give the same model); ``deadline`` (time.time()): the incremental mapper stops there with the photos
     it registered, and a rung still running :data:`KILL_GRACE` s later is stopped; ``min_mapping`` (seconds): a rung
     that must give a model (the ladder's first) instead always finishes its features and matches, and its mapper
@@ -353,7 +354,7 @@ def run_rung(work: Path, images: Path, groups: list[list[str]], rung: Rung, came
     from pipeline.colmaplib import pycolmap
 
     args = [str(work), str(images), groups, asdict(rung), camera_model, matching, seed,
-            None if base is None else [str(base[0]), str(base[1])], threads, deadline, min_mapping or 0.0]
+            None if base is None else [str(base[0] or ""), str(base[1])], threads, deadline, min_mapping or 0.0]
     log = work / f"{rung.name}.log"
     with open(log, "w") as f:
         child = [sys.executable, "-m", "pipeline.cameras.sfm", json.dumps(args), str(os.getpid())]  # it ends with us

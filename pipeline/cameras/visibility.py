@@ -1,0 +1,233 @@
+"""Visibility check of an SfM model: a group of photos joined to the others at the wrong side of the object.
+
+An object with the same pattern on two sides (a mouse with the same printed grip on its left and right) lets SIFT
+match a photo of one side with photos of the other. Where only a few true matches join a group of photos to the
+rest, such false matches can outnumber them, and both COLMAP mappers place the group, consistent in itself, at the
+other side: 24 of a phone's photos of such a mouse gave five views 84° from their true place at 0.39 px. The
+reprojection error cannot see it, nor can the aim check (the views still look at the object). The points can: the
+points the misplaced group alone observes float in front of what the other views observe, or the others' points in
+front of the group's.
+
+* :func:`occlusion_conflicts` finds, for each view, the model's points it does not observe that it would see in
+  front of a point it does observe (within a few pixels, clearly nearer): a point there would hide the one the view
+  observes. A right model has few, in few views; a view with many is conflicted (:func:`conflicted_views`). Of 24
+  photos of the mouse, the misjoined model has three conflicted views (8–9 conflicts at points three views observe
+  or more), and mapped from slightly different photos (the same, upsampled to 12 MP) two (42 and 53 at points two
+  views observe); the bench's right models at most 6 and 19.
+* :func:`misjoined_group` finds the group: the photos split into groups joined by pairs with at least a number of
+  matches the model explains (:func:`explained_matches`), the least number that puts most conflicts between groups.
+* :func:`joining_pairs` are the pairs between the group and the others whose matches the model explains: the false
+  matches that joined them. Mapped again without them, the group joins the others by the matches it has left, and
+  the model that poses as many photos with at most half the conflicts is kept
+  (:func:`pipeline.cameras.mapping.map_photos`).
+"""
+
+from __future__ import annotations
+
+import shutil
+import sqlite3
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from pipeline.cameras.pose_sanity import View, model_views
+
+MIN_CONFLICTS = 5
+"""A view is conflicted with this many conflicts among points at least three views observe (the right models of
+the bench's captures: at most 6 in a view, on a torus's silhouettes)..."""
+MIN_CONFLICTS_ANY = 25
+"""... or with this many among all the model's points (the right models: at most 19, DTU scan24's)."""
+PAIR_ID_BASE = 2147483647
+"""COLMAP's pair id: ``image_id1 * PAIR_ID_BASE + image_id2`` with ``image_id1 < image_id2``."""
+
+
+def occlusion_conflicts(views: list[View], points: np.ndarray, observers: list[np.ndarray], radius_px: float = 4.0,
+                        depth_margin: float = 0.1) -> list[tuple[int, int]]:
+    """(view, point) for each of the ``points`` (N, 3) a view does not observe (``observers[i]``: the indices of the
+    views observing point i) that projects into its photo within ``radius_px`` of a point it observes and nearer
+    than that point by more than ``depth_margin`` of its depth: a surface there would hide what the view observes."""
+    points = np.asarray(points, float)
+    if points.ndim != 2 or points.shape[1] != 3 or len(observers) != len(points):
+        raise ValueError(f"points must be (N, 3) with one observer list each, got {points.shape} and "
+                         f"{len(observers)} lists")
+    seen_by = np.zeros((len(views), len(points)), bool)
+    for i, obs in enumerate(observers):
+        seen_by[np.asarray(obs, int), i] = True
+    out = []
+    for v, view in enumerate(views):
+        seen = seen_by[v]
+        if not seen.any():
+            continue
+        cam = points @ view.R.T + view.t
+        z = cam[:, 2]
+        front = z > 1e-9
+        uv = np.full((len(points), 2), -1e9)
+        uv[front] = (cam[front] @ view.K.T)[:, :2] / z[front, None]
+        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < view.width) & (uv[:, 1] >= 0) & (uv[:, 1] < view.height)
+        tested = np.flatnonzero(inside & ~seen)
+        if len(tested) == 0:
+            continue
+        depth = np.append(z[seen], -np.inf)  # the last: no neighbour
+        dist, near = cKDTree(uv[seen]).query(uv[tested], k=min(8, int(seen.sum())), distance_upper_bound=radius_px)
+        dist, near = dist.reshape(len(tested), -1), near.reshape(len(tested), -1)
+        near = np.where(np.isfinite(dist), near, len(depth) - 1)
+        hides = (depth[near] > z[tested, None] * (1 + depth_margin)).any(1)
+        out += [(v, int(p)) for p in tested[hides]]
+    return out
+
+
+def misjoined_group(n_views: int, explained: dict[tuple[int, int], int], conflicts: list[tuple[int, int]],
+                    observers: list[np.ndarray], conflicted: set[int]) -> set[int] | None:
+    """The views a model joined to the others where it should not have, or None. Each ``conflicted`` view's
+    :func:`occlusion_conflicts` set it against the views observing its conflicting points. The views split into
+    groups joined by pairs of at least T ``explained`` matches (view pair → matches the model explains); T is the
+    least at which half of those conflicts lie between groups. The group is the one, the largest apart, that most of
+    the conflicts touch (None when no T splits them)."""
+    if len(conflicted) < 2 or not explained:
+        return None
+    pairs = [(v, o) for v, p in conflicts if v in conflicted for o in observers[p] if o != v]
+    (a, b), w = np.array(list(explained), int).T, np.array(list(explained.values()))
+
+    def labels(threshold: int) -> np.ndarray:
+        keep = w >= threshold
+        graph = coo_matrix((np.ones(keep.sum()), (a[keep], b[keep])), shape=(n_views, n_views))
+        return connected_components(graph, directed=False)[1]
+
+    def apart(lab: np.ndarray) -> bool:
+        return sum(lab[v] != lab[o] for v, o in pairs) * 2 >= len(pairs)
+
+    thresholds = np.unique(np.append(w, w.max() + 1))
+    lo, hi = 0, len(thresholds) - 1  # the least threshold that splits: more matches needed, more groups
+    if not apart(labels(thresholds[hi])):
+        return None
+    while lo < hi:
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if apart(labels(thresholds[mid])) else (mid + 1, hi)
+    lab = labels(thresholds[lo])
+    ends = np.bincount([lab[i] for pair in pairs for i in pair], minlength=lab.max() + 1)
+    ends[np.argmax(np.bincount(lab))] = 0  # the largest group is the model the others were joined to
+    return {int(v) for v in np.flatnonzero(lab == np.argmax(ends))} if ends.any() else None
+
+
+def joining_pairs(explained: dict[tuple[int, int], int], totals: dict[tuple[int, int], int], group: set[int],
+                  share: float = 0.5) -> list[tuple[int, int]]:
+    """The pairs between ``group`` and the other views of which the model explains at least ``share`` of the
+    verified matches (``totals``): the matches that joined the group where it is."""
+    return [k for k, e in explained.items() if (k[0] in group) != (k[1] in group) and e >= share * totals[k]]
+
+
+def model_observations(rec, min_track: int = 2) -> tuple[list[View], np.ndarray, list[np.ndarray]]:
+    """A pycolmap model's views, its points observed by at least ``min_track`` views, and each point's observing
+    views (indices into the views)."""
+    views = model_views(rec)
+    index = {i: n for n, i in enumerate(rec.reg_image_ids())}
+    points, observers = [], []
+    for p in rec.points3D.values():
+        obs = np.unique([index[e.image_id] for e in p.track.elements if e.image_id in index])
+        if len(obs) >= min_track:
+            points.append(p.xyz)
+            observers.append(obs)
+    return views, np.array(points).reshape(-1, 3), observers
+
+
+def explained_matches(rec, database: Path, max_px: float = 4.0) -> tuple[dict, dict]:
+    """Per pair of the model's views (indices as :func:`model_observations`) with verified matches in the COLMAP
+    ``database``: (matches within ``max_px`` of the epipolar lines of the model's poses, all verified matches)."""
+    order = {rec.image(i).name: n for n, i in enumerate(rec.reg_image_ids())}
+    images = {rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}
+    con = sqlite3.connect(f"file:{database}?mode=ro", uri=True)
+    try:
+        names = {i: n for i, n in con.execute("select image_id, name from images") if n in order}
+        keypoints = {names[i]: np.frombuffer(d, np.float32).reshape(r, c)[:, :2].astype(float)
+                     for i, r, c, d in con.execute("select image_id, rows, cols, data from keypoints") if i in names}
+        explained, totals = {}, {}
+        for pair_id, rows, data in con.execute("select pair_id, rows, data from two_view_geometries where rows > 0"):
+            a, b = names.get(pair_id // PAIR_ID_BASE), names.get(pair_id % PAIR_ID_BASE)
+            if a is None or b is None:
+                continue
+            m = np.frombuffer(data, np.uint32).reshape(rows, 2)
+            err = _epipolar_px(images[a], images[b], rec, keypoints[a][m[:, 0]], keypoints[b][m[:, 1]])
+            key = (order[a], order[b])
+            explained[key], totals[key] = int((err < max_px).sum()), rows
+    finally:
+        con.close()
+    return explained, totals
+
+
+def _epipolar_px(im_a, im_b, rec, xy_a: np.ndarray, xy_b: np.ndarray) -> np.ndarray:
+    """:func:`sampson_px` of matched pixels of two posed images of a pycolmap model."""
+    cam_a, cam_b = rec.camera(im_a.camera_id), rec.camera(im_b.camera_id)
+    Ma, Mb = im_a.cam_from_world().matrix(), im_b.cam_from_world().matrix()
+    R = Mb[:, :3] @ Ma[:, :3].T
+    focal = 0.5 * (cam_a.mean_focal_length() + cam_b.mean_focal_length())
+    return sampson_px(cam_a.cam_from_img(xy_a), cam_b.cam_from_img(xy_b), R, Mb[:, 3] - R @ Ma[:, 3], focal)
+
+
+def sampson_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, focal: float) -> np.ndarray:
+    """Sampson distance, in pixels of ``focal``, of matches ``xa`` ↔ ``xb`` (N, 2; normalised image coordinates)
+    to the epipolar geometry of the relative pose ``R``, ``t`` (a's camera → b's)."""
+    if xa.shape != xb.shape or xa.ndim != 2 or xa.shape[1] != 2:
+        raise ValueError(f"matches must be two (N, 2) arrays, got {xa.shape} and {xb.shape}")
+    pa, pb = np.c_[xa, np.ones(len(xa))], np.c_[xb, np.ones(len(xb))]
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+    ea, eb = pa @ E.T, pb @ E
+    num = np.einsum("ij,ij->i", pb, ea) ** 2
+    den = ea[:, 0] ** 2 + ea[:, 1] ** 2 + eb[:, 0] ** 2 + eb[:, 1] ** 2
+    return np.sqrt(num / np.maximum(den, 1e-30)) * focal
+
+
+def conflicted_views(views: list[View], points: np.ndarray, observers: list[np.ndarray]
+                     ) -> tuple[list[tuple[int, int]], set[int]]:
+    """The model's :func:`occlusion_conflicts`, and the views with at least :data:`MIN_CONFLICTS` of them among the
+    points three or more views observe (points two views observe left out, in front and behind), or
+    :data:`MIN_CONFLICTS_ANY` among all."""
+    conflicts = occlusion_conflicts(views, points, observers)
+    long = [i for i, obs in enumerate(observers) if len(obs) >= 3]
+    among_long = occlusion_conflicts(views, points[long], [observers[i] for i in long])
+    return conflicts, {int(v) for v, n in Counter(v for v, _ in among_long).items() if n >= MIN_CONFLICTS} | \
+        {int(v) for v, n in Counter(v for v, _ in conflicts).items() if n >= MIN_CONFLICTS_ANY}
+
+
+def misjoined(rec, database: Path) -> tuple[list[str], list[tuple[str, str]], int] | None:
+    """A model's misjoined group (:func:`misjoined_group`) as (its photos, the pairs that join it to the others,
+    the model's conflicts), or None when the model has no such group."""
+    views, points, observers = model_observations(rec)
+    conflicts, conflicted = conflicted_views(views, points, observers)
+    if len(conflicted) < 2:
+        return None
+    explained, totals = explained_matches(rec, database)
+    group = misjoined_group(len(views), explained, conflicts, observers, conflicted)
+    if group is None:
+        return None
+    cut = joining_pairs(explained, totals, group)
+    if not cut:
+        return None
+    return sorted(views[v].name for v in group), [(views[a].name, views[b].name) for a, b in cut], len(conflicts)
+
+
+def count_conflicts(rec) -> int:
+    """The model's :func:`occlusion_conflicts`."""
+    return len(occlusion_conflicts(*model_observations(rec)))
+
+
+def database_without(database: Path, pairs: list[tuple[str, str]], out: Path) -> Path:
+    """A copy of the COLMAP ``database`` at ``out`` in which the photo ``pairs`` (file names) have no verified
+    matches."""
+    tmp = out.with_suffix(".tmp")
+    shutil.copy(database, tmp)
+    con = sqlite3.connect(tmp)
+    try:
+        ids = {n: i for i, n in con.execute("select image_id, name from images")}
+        for a, b in pairs:
+            i, j = sorted((ids[a], ids[b]))
+            con.execute("update two_view_geometries set rows = 0, data = NULL, config = 1 where pair_id = ?",
+                        (i * PAIR_ID_BASE + j,))
+        con.commit()
+    finally:
+        con.close()
+    tmp.replace(out)
+    return out

@@ -1,0 +1,175 @@
+"""The visibility check of an SfM model: conflicts where a point lies in front of one a view observes, the misjoined
+group they point to, the pairs that joined it, and the ladder's choice between the model and its regrouped map."""
+
+import sqlite3
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from pipeline.cameras import mapping
+from pipeline.cameras.config import CamerasConfig
+from pipeline.cameras.pose_sanity import View
+from pipeline.cameras.sfm import Rung
+from pipeline.cameras.visibility import (
+    PAIR_ID_BASE,
+    conflicted_views,
+    database_without,
+    joining_pairs,
+    misjoined_group,
+    occlusion_conflicts,
+    sampson_px,
+)
+
+K = np.array([[100.0, 0, 100], [0, 100.0, 100], [0, 0, 1]])
+
+
+def _look_at(centre: np.ndarray, target: np.ndarray, name: str) -> View:
+    """A 200×200 view at ``centre`` looking at ``target``, its image up along +z."""
+    z = (target - centre) / np.linalg.norm(target - centre)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return View(name, R, -R @ centre, K, 200, 200)
+
+
+def test_a_point_in_front_of_an_observed_one_conflicts_and_only_that():
+    """One view at the origin looking along +z observes a point 10 away on its axis. Points it does not observe:
+    on the same pixel at 5 (it would hide the observed one: a conflict), at 9.5 (within the depth margin), at 12
+    (hidden behind it), 20 px beside it at 5 (nothing observed there) and behind the camera: only the first."""
+    view = View("v", np.eye(3), np.zeros(3), K, 200, 200)
+    points = np.array([[0, 0, 10], [0, 0, 5], [0, 0, 9.5], [0, 0, 12], [1.0, 0, 5], [0, 0, -5]])
+    observers = [np.array([0])] + [np.array([], int)] * 5
+    assert occlusion_conflicts([view], points, observers) == [(0, 1)]
+    assert occlusion_conflicts([view], points, observers, depth_margin=0.01) == [(0, 1), (0, 2)]
+
+
+def test_bad_points_are_refused():
+    view = View("v", np.eye(3), np.zeros(3), K, 200, 200)
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        occlusion_conflicts([view], np.zeros((4, 2)), [np.array([0])] * 4)
+    with pytest.raises(ValueError, match="one observer list each"):
+        occlusion_conflicts([view], np.zeros((4, 3)), [np.array([0])] * 3)
+
+
+def _sphere_capture(shift: float):
+    """12 views on a ring 4 from the origin, 30° above it, and 600 points of the unit sphere, each observed by the
+    views that face it. ``shift``: views 0–2 and their points are moved by it along x, as a mapper that joined
+    them at the wrong place would have them (their points are their own: the others do not observe them)."""
+    angles = np.radians(np.arange(12) * 30.0)
+    centres = 4 * np.stack([np.cos(angles) * np.cos(np.radians(30)), np.sin(angles) * np.cos(np.radians(30)),
+                            np.full(12, np.sin(np.radians(30)))], 1)
+    k = np.arange(600) + 0.5
+    phi, theta = np.arccos(1 - 2 * k / 600), np.pi * (1 + 5 ** 0.5) * k
+    sphere = np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
+    group = [0, 1, 2]
+    points, observers = [], []
+    for part, views in ((0, group), (1, [v for v in range(12) if v not in group])):
+        for p in sphere:
+            facing = [v for v in views if (centres[v] - p) @ p > 0.3 * np.linalg.norm(centres[v] - p)]
+            if len(facing) >= 2:
+                points.append(p + (np.array([shift, 0, 0]) if part == 0 else 0))
+                observers.append(np.array(facing))
+    offset = np.array([[shift, 0, 0]]) * np.isin(np.arange(12), group)[:, None]
+    views = [_look_at(c + o, o, f"v{i}") for i, (c, o) in enumerate(zip(centres, offset))]
+    return views, np.array(points), observers
+
+
+def test_a_group_joined_at_the_wrong_place_conflicts_and_a_right_model_does_not():
+    """The ring of views round a sphere: as it is, no view sees a point in front of one it observes. With views 0–2
+    and their points 0.6 off, the others' points lie in front of theirs and theirs in front of the others'."""
+    views, points, observers = _sphere_capture(0.0)
+    assert occlusion_conflicts(views, points, observers) == []
+    views, points, observers = _sphere_capture(0.6)
+    counts = np.bincount([v for v, _ in occlusion_conflicts(views, points, observers)], minlength=12)
+    assert (counts >= 5).sum() >= 2, counts
+
+
+def test_the_misjoined_group_is_the_one_the_conflicts_part_from_the_others():
+    """Views 0–2 hold together by 300 explained matches a pair, as do neighbours 3–11; 40 false matches join 2 to
+    3, and 11 to 0. The conflicts lie between 0–2 and the others: the group is 0–2, and the pairs that joined it are
+    those the model explains (1–5's matches it does not). One conflicted view alone is no group."""
+    explained = {(i, i + 1): 300 for i in range(11) if i != 2}
+    explained |= {(2, 3): 40, (0, 11): 40, (1, 5): 2}
+    totals = dict(explained) | {(1, 5): 50}
+    observers = [np.array([3, 4]), np.array([0, 1]), np.array([9, 10])]
+    conflicts = [(0, 0)] * 3 + [(1, 0)] * 3 + [(5, 1)] * 6 + [(2, 2)] * 2
+    group = misjoined_group(12, explained, conflicts, observers, {0, 1, 5})
+    assert group == {0, 1, 2}
+    assert sorted(joining_pairs(explained, totals, group)) == [(0, 11), (2, 3)]
+    assert misjoined_group(12, explained, conflicts, observers, {5}) is None  # one view alone
+
+
+def test_a_view_is_conflicted_by_few_conflicts_at_long_tracks_or_many_at_any():
+    """One view looks along +z at a row of points 10 away, each observed by it and two others, and at 5 points in
+    front of them that two other views observe: 5 conflicts among points three views observe make it conflicted,
+    4 do not. The same with points two views observe: it takes 25."""
+    def case(n_front: int, track: int, n_behind: int = 30):
+        view = View("v", np.eye(3), np.zeros(3), K, 200, 200)
+        xs = np.linspace(-0.8, 0.8, n_behind)
+        behind = np.stack([xs * 10, np.zeros(n_behind), np.full(n_behind, 10.0)], 1)
+        front = behind[:n_front] * 0.5
+        others = np.arange(1, track)
+        observers = [np.array([0, *others])] * n_behind + [np.array([7, 8, 9][:track])] * n_front
+        far = [View(f"o{i}", np.eye(3), np.array([0, 0, -100.0]), K, 200, 200) for i in range(9)]
+        return conflicted_views([view, *far], np.vstack([behind, front]), observers)
+    conflicts, conflicted = case(5, 3)
+    assert len(conflicts) == 5 and conflicted == {0}
+    assert case(4, 3)[1] == set()
+    assert case(24, 2)[1] == set() and case(25, 2)[1] == {0}
+
+
+def test_sampson_distance_is_zero_on_the_epipolar_line_and_the_offset_beside_it():
+    """Two views 1 apart along x see the same points: matched pixels lie on their epipolar lines (0 px). A match
+    moved 3 px across its (horizontal) epipolar line in one view is 3/√2 px off: the distance shares it between the
+    two."""
+    X = np.array([[0.2, -0.3, 5.0], [-0.5, 0.4, 7.0], [0.1, 0.1, 4.0]])
+    R, t = np.eye(3), np.array([-1.0, 0, 0])
+    xa, xb = X[:, :2] / X[:, 2:], (X + t)[:, :2] / (X + t)[:, 2:]
+    assert np.allclose(sampson_px(xa, xb, R, t, 100.0), 0, atol=1e-9)
+    moved = xb + np.array([0, 0.03])
+    assert np.allclose(sampson_px(xa, moved, R, t, 100.0), 3.0 / np.sqrt(2), atol=0.01)
+
+
+def test_the_copy_without_the_pairs_loses_their_matches_and_the_original_is_untouched(tmp_path):
+    db = tmp_path / "matches.db"
+    with sqlite3.connect(db) as con:
+        con.execute("create table images (image_id integer primary key, name text)")
+        con.execute("create table two_view_geometries (pair_id integer primary key, rows integer, data blob, "
+                    "config integer)")
+        con.executemany("insert into images values (?, ?)", [(1, "a.png"), (2, "b.png"), (3, "c.png")])
+        con.executemany("insert into two_view_geometries values (?, 40, x'00', 3)",
+                        [(1 * PAIR_ID_BASE + 2,), (1 * PAIR_ID_BASE + 3,), (2 * PAIR_ID_BASE + 3,)])
+    out = database_without(db, [("c.png", "a.png")], tmp_path / "regrouped.db")
+
+    def rows(path):
+        with sqlite3.connect(path) as con:
+            return dict(con.execute("select pair_id, rows from two_view_geometries"))
+    assert rows(out) == {PAIR_ID_BASE + 2: 40, PAIR_ID_BASE + 3: 0, 2 * PAIR_ID_BASE + 3: 40}
+    assert set(rows(db).values()) == {40}
+
+
+@pytest.mark.parametrize("registered, after, kept", [(24, 0, "regrouped"), (23, 0, "first"), (24, 20, "first")])
+def test_the_regrouped_model_is_kept_only_with_as_many_photos_and_half_the_conflicts(
+        tmp_path, monkeypatch, capsys, registered, after, kept):
+    """The first model has 28 conflicts. Mapped again, it is kept with as many photos and at most 14 conflicts."""
+    first = mapping._Kept(24, 0.4, "first model", Rung("default"), tmp_path / "m.db")
+    monkeypatch.setattr(mapping, "misjoined", lambda rec, db: (["a.png", "b.png"], [("a.png", "c.png")], 28))
+    monkeypatch.setattr(mapping, "database_without", lambda db, cut, out: out)
+    monkeypatch.setattr(mapping, "run_rung", lambda *a, **k: ("regrouped model", None, {}, None))
+    monkeypatch.setattr(mapping, "_judge", lambda rec, *a: ({"registered": registered,
+                                                              "mean_reprojection_error": 0.4}, []))
+    monkeypatch.setattr(mapping, "count_conflicts", lambda rec: after)
+    best = mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(), ["x"] * 24, 100.0, [])
+    assert best.model == f"{kept} model"
+    assert (best.rung.name == "default-regrouped") == (kept == "regrouped")
+    assert "mapping again without the 1 pairs" in capsys.readouterr().out
+    off = mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(regroup=False), ["x"] * 24, 100.0, [])
+    assert off is first
+
+
+def test_a_model_without_conflicts_is_not_mapped_again(tmp_path, monkeypatch):
+    first = mapping._Kept(24, 0.4, SimpleNamespace(), Rung("default"), tmp_path / "m.db")
+    monkeypatch.setattr(mapping, "misjoined", lambda rec, db: None)
+    monkeypatch.setattr(mapping, "run_rung", lambda *a, **k: pytest.fail("mapped again"))
+    assert mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(), [], 100.0, []) is first
