@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 import sqlite3
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -34,7 +35,7 @@ from pipeline.cameras.sfm import (
     verify_again,
     verify_at_poses,
 )
-from pipeline.cameras.visibility import count_conflicts, database_without, misjoined
+from pipeline.cameras.visibility import count_conflicts, database_without, misjoined, unexplained_pairs
 from pipeline.colmaplib import write_model
 from pipeline.errors import StageError
 from pipeline.inputs.photos import (
@@ -98,12 +99,21 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     final adjustment (:func:`finish_model`); returns (model, folder of the images SfM saw, summary of the rungs
     tried)."""
     rec, inp, database, rung, tried = map_photos(ws, photos, cfg)
+    doubtful = unexplained_pairs(rec, database)
+    if doubtful:
+        a, b, n, _ = doubtful[0]
+        more = f" and {len(doubtful) - 1} more pairs" if len(doubtful) > 1 else ""
+        print(f"warning: the cameras' model does not explain the {n} verified matches of {Path(a).stem} with "
+              f"{Path(b).stem}{more}: a group of photos may be posed at the wrong side of the object (the same "
+              "pattern on two sides); look at the mesh, and if it is wrong, add photos between its sides",
+              file=sys.stderr)
     reg = {rec.image(i).name for i in rec.reg_image_ids()}
     matches = {Path(n).stem: k for n, k in verified_matches(database, reg).items()}
     with heartbeat("cameras: final adjustment of the model"):
         rec, final, object_note = finish_model(ws, rec, database, inp, cfg, rung)
     return rec, inp, {"rung": rung, "rungs": tried, "final_adjustment": final, "object_matches": object_note,
-                      "matches": matches}
+                      "matches": matches, "unexplained_pairs": [[Path(a).stem, Path(b).stem, n, e]
+                                                                for a, b, n, e in doubtful]}
 
 
 def final_adjustment(cfg: CamerasConfig, rung: str) -> tuple[int, str]:
@@ -298,12 +308,12 @@ def _regrouped(best: _Kept, work: Path, inp: Path, groups: list[list[str]], cfg:
     """The ladder's ``best`` model, or, where it joined a group of photos to the others at the wrong side of the
     object (:func:`pipeline.cameras.visibility.misjoined`, with ``cfg.regroup``), the incremental mapper's model of
     the same matches without the pairs that joined them, when that one poses as many photos with at most half the
-    conflicts; stopped past half the ``budget``."""
+    conflicts and fewer at points three or more views observe; stopped past half the ``budget``."""
     found = misjoined(best.model, best.database) if cfg.regroup else None
     if found is None:
         return best
     group, cut, before = found
-    print(f"cameras: {before} times a point of the model lies in front of one a view observes: "
+    print(f"cameras: {before[0]} times a point of the model lies in front of one a view observes: "
           f"{names_or_count([Path(n).stem for n in group])} may be joined to the others at the wrong side of the "
           f"object (the same pattern on two sides): mapping again without the {len(cut)} pairs that join them",
           flush=True)
@@ -314,11 +324,12 @@ def _regrouped(best: _Kept, work: Path, inp: Path, groups: list[list[str]], cfg:
                                   (None, database), sfm_threads(cfg), time.time() + budget / 2)
     judged = _judge(rec, rung.name, time.perf_counter() - t0, steps, err, inp, names, cfg, None, tried, [])
     after = None if judged is None else count_conflicts(rec)
-    if judged is None or judged[0]["registered"] < best.registered or after > before / 2:
-        why = "no model" if judged is None else f"{judged[0]['registered']} photos, {after} conflicts"
+    if judged is None or judged[0]["registered"] < best.registered or after[0] > before[0] / 2 or \
+            after[1] >= before[1]:
+        why = "no model" if judged is None else f"{judged[0]['registered']} photos, {after[0]} conflicts"
         print(f"cameras: the first model is kept ({why} mapped again)")
         return best
-    print(f"cameras: the model mapped again is kept: {after} conflicts")
+    print(f"cameras: the model mapped again is kept: {after[0]} conflicts")
     return _Kept(judged[0]["registered"], judged[0]["mean_reprojection_error"], rec, rung, database)
 
 

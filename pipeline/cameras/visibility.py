@@ -16,10 +16,13 @@ front of the group's.
   views observe); the bench's right models at most 6 and 19.
 * :func:`misjoined_group` finds the group: the photos split into groups joined by pairs with at least a number of
   matches the model explains (:func:`explained_matches`), the least number that puts most conflicts between groups.
+* :func:`unexplained_pairs`: where the conflicts do not show a misjoined group (it lies on the object's surface,
+  turned about its axis), a pair of photos with many verified matches that the model does not explain does; the
+  stage then warns.
 * :func:`joining_pairs` are the pairs between the group and the others whose matches the model explains: the false
   matches that joined them. Mapped again without them, the group joins the others by the matches it has left, and
-  the model that poses as many photos with at most half the conflicts is kept
-  (:func:`pipeline.cameras.mapping.map_photos`).
+  that model is kept when it poses as many photos with at most half the conflicts and fewer at points three or more
+  views observe (:func:`pipeline.cameras.mapping.map_photos`): a right model without those never changes.
 """
 
 from __future__ import annotations
@@ -41,6 +44,10 @@ MIN_CONFLICTS = 5
 the bench's captures: at most 6 in a view, on a torus's silhouettes)..."""
 MIN_CONFLICTS_ANY = 25
 """... or with this many among all the model's points (the right models: at most 19, DTU scan24's)."""
+MIN_UNEXPLAINED = 100
+"""A pair of photos with this many verified matches, of which the model explains under half, is one it cannot hold:
+the bench's right models leave at most 46 of a pair's matches unexplained (the mouse's 59 photos), the mouse's
+misjoined models of 16–30 photos 198–545."""
 PAIR_ID_BASE = 2147483647
 """COLMAP's pair id: ``image_id1 * PAIR_ID_BASE + image_id2`` with ``image_id1 < image_id2``."""
 
@@ -181,22 +188,23 @@ def sampson_px(xa: np.ndarray, xb: np.ndarray, R: np.ndarray, t: np.ndarray, foc
 
 
 def conflicted_views(views: list[View], points: np.ndarray, observers: list[np.ndarray]
-                     ) -> tuple[list[tuple[int, int]], set[int]]:
-    """The model's :func:`occlusion_conflicts`, and the views with at least :data:`MIN_CONFLICTS` of them among the
-    points three or more views observe (points two views observe left out, in front and behind), or
-    :data:`MIN_CONFLICTS_ANY` among all."""
+                     ) -> tuple[list[tuple[int, int]], list[tuple[int, int]], set[int]]:
+    """The model's :func:`occlusion_conflicts`; those among the points three or more views observe (points two
+    views observe left out, in front and behind: they are the noisier); the views with at least
+    :data:`MIN_CONFLICTS` of the latter or :data:`MIN_CONFLICTS_ANY` of the former."""
     conflicts = occlusion_conflicts(views, points, observers)
-    long = [i for i, obs in enumerate(observers) if len(obs) >= 3]
-    among_long = occlusion_conflicts(views, points[long], [observers[i] for i in long])
-    return conflicts, {int(v) for v, n in Counter(v for v, _ in among_long).items() if n >= MIN_CONFLICTS} | \
+    long = np.array([i for i, obs in enumerate(observers) if len(obs) >= 3], int)
+    among_long = [(v, int(long[p])) for v, p in occlusion_conflicts(views, points[long], [observers[i] for i in long])]
+    conflicted = {int(v) for v, n in Counter(v for v, _ in among_long).items() if n >= MIN_CONFLICTS} | \
         {int(v) for v, n in Counter(v for v, _ in conflicts).items() if n >= MIN_CONFLICTS_ANY}
+    return conflicts, among_long, conflicted
 
 
-def misjoined(rec, database: Path) -> tuple[list[str], list[tuple[str, str]], int] | None:
+def misjoined(rec, database: Path) -> tuple[list[str], list[tuple[str, str]], tuple[int, int]] | None:
     """A model's misjoined group (:func:`misjoined_group`) as (its photos, the pairs that join it to the others,
-    the model's conflicts), or None when the model has no such group."""
+    its conflicts as :func:`count_conflicts`), or None when the model has no such group."""
     views, points, observers = model_observations(rec)
-    conflicts, conflicted = conflicted_views(views, points, observers)
+    conflicts, among_long, conflicted = conflicted_views(views, points, observers)
     if len(conflicted) < 2:
         return None
     explained, totals = explained_matches(rec, database)
@@ -206,12 +214,29 @@ def misjoined(rec, database: Path) -> tuple[list[str], list[tuple[str, str]], in
     cut = joining_pairs(explained, totals, group)
     if not cut:
         return None
-    return sorted(views[v].name for v in group), [(views[a].name, views[b].name) for a, b in cut], len(conflicts)
+    names = sorted(views[v].name for v in group)
+    return names, [(views[a].name, views[b].name) for a, b in cut], (len(conflicts), len(among_long))
 
 
-def count_conflicts(rec) -> int:
-    """The model's :func:`occlusion_conflicts`."""
-    return len(occlusion_conflicts(*model_observations(rec)))
+def count_conflicts(rec) -> tuple[int, int]:
+    """The model's conflicts (:func:`conflicted_views`): at all its points, at those three or more views observe."""
+    conflicts, among_long, _ = conflicted_views(*model_observations(rec))
+    return len(conflicts), len(among_long)
+
+
+def unexplained(explained: dict[tuple[int, int], int], totals: dict[tuple[int, int], int],
+                min_matches: int = MIN_UNEXPLAINED) -> list[tuple[int, int]]:
+    """The pairs with at least ``min_matches`` verified matches (``totals``) of which the model explains under half
+    (``explained``), the most matches first."""
+    return sorted((k for k, n in totals.items() if n >= min_matches and explained[k] < 0.5 * n),
+                  key=lambda k: -totals[k])
+
+
+def unexplained_pairs(rec, database: Path) -> list[tuple[str, str, int, int]]:
+    """:func:`unexplained` for a pycolmap model and its COLMAP ``database``: (photo, photo, matches, explained)."""
+    explained, totals = explained_matches(rec, database)
+    names = [v.name for v in model_views(rec)]
+    return [(names[a], names[b], totals[a, b], explained[a, b]) for a, b in unexplained(explained, totals)]
 
 
 def database_without(database: Path, pairs: list[tuple[str, str]], out: Path) -> Path:

@@ -152,6 +152,13 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
     object_note = cameras_stamp.get("object_matches")  # the object's matches verified again (large photos)
     for note in (cameras_stamp.get("final_adjustment") or []) + ([object_note] if object_note else []):
         out.append(f"<li>{html.escape(note[0].upper() + note[1:])}</li>")
+    doubtful = cameras_stamp.get("unexplained_pairs") or []
+    if doubtful:
+        a, b, n, e = doubtful[0]
+        out.append(f"<li><b>Cameras in doubt</b>: the model explains {e} of the {n} verified matches of "
+                   f"{html.escape(a)} with {html.escape(b)}" + (f" ({len(doubtful) - 1} more such pairs)" if
+                                                                 len(doubtful) > 1 else "")
+                   + ": a group of photos may be posed at the wrong side of the object.</li>")
     spread = cameras_stamp.get("exposure_spread")
     if spread is not None:
         out.append(f"<li>The photos' exposure differs by {100 * spread:.1f} % (per-view gains measured on the SfM "

@@ -19,6 +19,7 @@ from pipeline.cameras.visibility import (
     misjoined_group,
     occlusion_conflicts,
     sampson_px,
+    unexplained,
 )
 
 K = np.array([[100.0, 0, 100], [0, 100.0, 100], [0, 0, 1]])
@@ -113,10 +114,11 @@ def test_a_view_is_conflicted_by_few_conflicts_at_long_tracks_or_many_at_any():
         observers = [np.array([0, *others])] * n_behind + [np.array([7, 8, 9][:track])] * n_front
         far = [View(f"o{i}", np.eye(3), np.array([0, 0, -100.0]), K, 200, 200) for i in range(9)]
         return conflicted_views([view, *far], np.vstack([behind, front]), observers)
-    conflicts, conflicted = case(5, 3)
-    assert len(conflicts) == 5 and conflicted == {0}
-    assert case(4, 3)[1] == set()
-    assert case(24, 2)[1] == set() and case(25, 2)[1] == {0}
+    conflicts, among_long, conflicted = case(5, 3)
+    assert len(conflicts) == len(among_long) == 5 and conflicted == {0}
+    assert [p for _, p in among_long] == [30, 31, 32, 33, 34]  # indices into all the points
+    assert case(4, 3)[2] == set()
+    assert case(24, 2)[2] == set() and case(25, 2)[2] == {0}
 
 
 def test_sampson_distance_is_zero_on_the_epipolar_line_and_the_offset_beside_it():
@@ -149,12 +151,14 @@ def test_the_copy_without_the_pairs_loses_their_matches_and_the_original_is_unto
     assert set(rows(db).values()) == {40}
 
 
-@pytest.mark.parametrize("registered, after, kept", [(24, 0, "regrouped"), (23, 0, "first"), (24, 20, "first")])
+@pytest.mark.parametrize("registered, after, kept", [(24, (14, 9), "regrouped"), (23, (0, 0), "first"),
+                                                     (24, (15, 0), "first"), (24, (0, 10), "first")])
 def test_the_regrouped_model_is_kept_only_with_as_many_photos_and_half_the_conflicts(
         tmp_path, monkeypatch, capsys, registered, after, kept):
-    """The first model has 28 conflicts. Mapped again, it is kept with as many photos and at most 14 conflicts."""
+    """The first model has 28 conflicts, 10 of them at points three or more views observe. Mapped again, it is
+    kept with as many photos, at most 14 conflicts and fewer than 10 of the latter."""
     first = mapping._Kept(24, 0.4, "first model", Rung("default"), tmp_path / "m.db")
-    monkeypatch.setattr(mapping, "misjoined", lambda rec, db: (["a.png", "b.png"], [("a.png", "c.png")], 28))
+    monkeypatch.setattr(mapping, "misjoined", lambda rec, db: (["a.png", "b.png"], [("a.png", "c.png")], (28, 10)))
     monkeypatch.setattr(mapping, "database_without", lambda db, cut, out: out)
     monkeypatch.setattr(mapping, "run_rung", lambda *a, **k: ("regrouped model", None, {}, None))
     monkeypatch.setattr(mapping, "_judge", lambda rec, *a: ({"registered": registered,
@@ -173,3 +177,25 @@ def test_a_model_without_conflicts_is_not_mapped_again(tmp_path, monkeypatch):
     monkeypatch.setattr(mapping, "misjoined", lambda rec, db: None)
     monkeypatch.setattr(mapping, "run_rung", lambda *a, **k: pytest.fail("mapped again"))
     assert mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(), [], 100.0, []) is first
+
+
+def test_a_pair_with_many_matches_the_model_does_not_explain_is_in_doubt():
+    """120 matches of which 50 explained: in doubt; 60 of 120 explained, or 99 matches none explained: not."""
+    totals = {(0, 1): 120, (1, 2): 120, (2, 3): 99, (3, 4): 400}
+    explained = {(0, 1): 50, (1, 2): 60, (2, 3): 0, (3, 4): 10}
+    assert unexplained(explained, totals) == [(3, 4), (0, 1)]
+
+
+def test_the_cameras_stage_warns_of_a_pair_its_model_cannot_hold(tmp_path, monkeypatch, capsys):
+    """The ladder's model leaves 545 of a pair's matches unexplained: one warning line naming the two photos, and
+    the pair in the stage's record."""
+    rec = SimpleNamespace(reg_image_ids=lambda: [])
+    monkeypatch.setattr(mapping, "map_photos", lambda ws, photos, cfg: (rec, tmp_path, tmp_path / "m.db", "default",
+                                                                         []))
+    monkeypatch.setattr(mapping, "unexplained_pairs", lambda rec, db: [("59F0.png", "CEAC.png", 545, 41)])
+    monkeypatch.setattr(mapping, "verified_matches", lambda db, reg: {})
+    monkeypatch.setattr(mapping, "finish_model", lambda ws, rec, db, inp, cfg, rung: (rec, [], None))
+    _, _, info = mapping.run_sfm(SimpleNamespace(root=tmp_path), [], CamerasConfig())
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "does not explain the 545 verified matches of 59F0 with CEAC" in err
+    assert info["unexplained_pairs"] == [["59F0", "CEAC", 545, 41]]

@@ -28,6 +28,13 @@ def test_the_ladder_in_words_with_rungs_not_tried_and_a_global_model(tmp_path):
     assert "kept <b>default-global</b>" in html
 
 
+def test_cameras_in_doubt_are_said_with_the_pair_the_model_cannot_hold(tmp_path):
+    stamp = {"rung": "default", "unexplained_pairs": [["59F0", "CEAC", 545, 41], ["A", "B", 120, 3]]}
+    html = capture_section(Workspace(tmp_path / "ws"), stamp)
+    assert "Cameras in doubt</b>: the model explains 41 of the 545 verified matches of 59F0 with CEAC (1 more" in html
+    assert "Cameras in doubt" not in capture_section(Workspace(tmp_path / "ws"), {"rung": "default"})
+
+
 def test_the_objects_size_in_millimetres_with_a_board_else_the_scale_is_arbitrary():
     """The texture stage's measured box: in mm when a printed board put the mesh in metres; without one, no number."""
     metric = {"object_size": {"height": 0.1234, "width": 0.0806, "depth": 0.05, "units": "metres"}}
