@@ -29,6 +29,9 @@ DTU = ROOT.parent / "shared" / "data" / "dtu_scan24"
 REAL = {"mouse": DTU.parent / "mouse_phone", "blowtorch": DTU.parent / "blowtorch"}
 """Real captures run from their photos alone (:func:`run_real`): a phone's white-on-white mouse, a shiny blowtorch on a
 carpet (with hand masks); DTU scan24 has its own row (:func:`run_dtu`)."""
+FOLDERS = {"mouse24": ("mouse", 24, 4032)}
+"""Phone folders made from a real capture's photos (:func:`take_photos`): (capture of :data:`REAL`,
+photos taken evenly spaced, longest side): 24 of the mouse's photos at a 12 MP phone's 4032×3024."""
 SCENES = {
     "cow": ROOT / "configs" / "scenes" / "cow_floor.yaml",
     "jar": ROOT / "configs" / "scenes" / "jar_floor.yaml",
@@ -524,22 +527,58 @@ def run_real(spec: dict, work: Path) -> dict:
     masks' IoU against them."""
     from pipeline.workspace import Workspace
 
-    src = REAL[spec["scene"]]
+    src, photos = capture_photos(spec["scene"])
     full = RUNS / f"real_{spec['scene']}"
     if not (full / ".stages" / "depth.json").exists():
         shutil.rmtree(full, ignore_errors=True)
-        stages(("cameras", "masks", "depth"), full, config(None), images=src / "images")
+        stages(("cameras", "masks", "depth"), full, config(None), images=photos)
     ws = work / "ws"
     hand = undistorted_hand_masks(full, src / "masks") if (src / "masks").is_dir() else None
     scores = heldout_scores(full, ws, spec["preset"], [], hand)
     shared = Workspace(full).seconds()
     secs = {**shared, **{k: v for k, v in Workspace(ws).seconds().items() if k not in shared}}
     stamp = Workspace(full).stamp("cameras") or {}
-    n_photos = len([p for p in (src / "images").iterdir() if p.is_file()])
+    n_photos = len([p for p in photos.iterdir() if p.is_file()])
     iou = masks_iou(full, hand) if hand is not None else None
     return {"seconds": secs, "chamfer_rel": None, "fscore": None, **scores, "mask_iou": iou,
             "registered": f"{scores['views']['registered']}/{n_photos}", "rung": stamp.get("rung"),
             "support": stamp.get("support")}
+
+
+def capture_photos(scene: str) -> tuple[Path, Path]:
+    """The folder of a real capture of :data:`REAL` or :data:`FOLDERS` (for a folder: the capture it comes from, whose
+    hand masks it shares) and the folder of its photos (a folder's made once, under ``bench/runs``)."""
+    if scene in REAL:
+        return REAL[scene], REAL[scene] / "images"
+    capture, take, long_side = FOLDERS[scene]
+    photos = RUNS / f"photos_{scene}"
+    if not photos.is_dir() or len(list(photos.iterdir())) != take:
+        take_photos(REAL[capture] / "images", photos, take, long_side)
+    return REAL[capture], photos
+
+
+def take_photos(src: Path, out: Path, take: int, long_side: int = 0) -> Path:
+    """``take`` photos of the folder ``src``, evenly spaced in name order, into ``out`` (made afresh), each resized to
+    ``long_side`` (0: copied as is); ``bench/subset.py`` on the command line."""
+    import cv2
+
+    from pipeline.inputs.photos import list_photos, read_photo
+
+    photos = list_photos(src)[0]
+    if not 2 <= take <= len(photos):
+        raise SystemExit(f"{src}: {len(photos)} photos; --take must be between 2 and that")
+    out = fresh_folder(out)
+    for i in np.linspace(0, len(photos) - 1, take).round().astype(int):
+        photo = photos[i]
+        if long_side <= 0:
+            shutil.copy(photo, out / photo.name)
+            continue
+        img = read_photo(photo)
+        scale = long_side / max(img.shape[:2])
+        size = (round(img.shape[1] * scale), round(img.shape[0] * scale))
+        cv2.imwrite(str(out / f"{photo.stem}.jpg"), cv2.resize(img, size, interpolation=cv2.INTER_CUBIC),
+                    [cv2.IMWRITE_JPEG_QUALITY, 92])
+    return out
 
 
 def undistorted_hand_masks(full: Path, hand: Path) -> Path:

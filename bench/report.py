@@ -177,7 +177,8 @@ def cameras_table(results: list[dict]) -> str:
 
 REAL_NAMES = {"dtu": "DTU scan24: 49 photos of a toy house on a table (384×384)",
               "mouse": "a mouse on a white table: 59 phone photos, portrait and landscape (1440×1920)",
-              "blowtorch": "a shiny brass blowtorch on a carpet: 67 photos (1600×1068), hand masks"}
+              "blowtorch": "a shiny brass blowtorch on a carpet: 67 photos (1600×1068), hand masks",
+              "mouse24": "a phone folder: 24 of the mouse's photos at 12 MP (4032×3024; `bench/subset.py`)"}
 STAGE_ORDER = ("cameras", "masks", "depth", "train", "mesh", "texture")
 
 

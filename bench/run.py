@@ -37,7 +37,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.evaluate import REAL, RUNS, fresh_folder, run_cameras, run_dtu, run_real, run_synthetic  # noqa: E402
+from bench.evaluate import FOLDERS, REAL, RUNS, fresh_folder, run_cameras, run_dtu, run_real, run_synthetic  # noqa: E402
 from bench.report import DEFAULTS_VERSION, is_stale, write  # noqa: E402
 
 FLOOR_SCENES = ("cow", "jar", "book")
@@ -178,7 +178,7 @@ def plan(quick: bool) -> list[dict]:
     out += [{"scene": s, "cameras": "sfm", "preset": "default", "knob": "photo hull", "ablation": True}
             for s in ("cow_float", "jar_alike", "dtu")]
     out += [{"kind": "cameras", "condition": c, "scene": CONDITIONS[c][0]} for c in CONDITIONS]
-    out += [{"scene": s, "cameras": "sfm", "preset": "default"} for s in REAL]
+    out += [{"scene": s, "cameras": "sfm", "preset": "default"} for s in (*REAL, *FOLDERS)]
     return out
 
 
@@ -187,7 +187,7 @@ def one(spec: dict, work: Path) -> dict:
         r = run_cameras(spec, work, CONDITIONS)
     elif spec["scene"] == "dtu":
         r = run_dtu(spec, work, ABLATIONS)
-    elif spec["scene"] in REAL:
+    elif spec["scene"] in REAL or spec["scene"] in FOLDERS:
         r = run_real(spec, work)
     else:
         r = run_synthetic(spec, work, {**KNOBS, **ABLATIONS})

@@ -9,18 +9,14 @@ quality 92): 4032 gives a 12 MP phone's 4032×3024. The photos of ``SRC`` are on
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 from pathlib import Path
-
-import cv2
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.evaluate import fresh_folder  # noqa: E402
-from pipeline.inputs.photos import list_photos, read_photo  # noqa: E402
+from bench.evaluate import take_photos  # noqa: E402
+from pipeline.inputs.photos import list_photos  # noqa: E402
 
 
 def main() -> None:
@@ -30,21 +26,8 @@ def main() -> None:
     ap.add_argument("--take", type=int, required=True, help="photos to take, evenly spaced in name order")
     ap.add_argument("--long-side", type=int, default=0, help="resize each to this longest side, px (0: as is)")
     args = ap.parse_args()
-    photos = list_photos(args.src)[0]
-    if not 2 <= args.take <= len(photos):
-        raise SystemExit(f"{args.src}: {len(photos)} photos; --take must be between 2 and that")
-    out = fresh_folder(args.out)
-    for i in np.linspace(0, len(photos) - 1, args.take).round().astype(int):
-        src = photos[i]
-        if args.long_side <= 0:
-            shutil.copy(src, out / src.name)
-            continue
-        img = read_photo(src)
-        scale = args.long_side / max(img.shape[:2])
-        size = (round(img.shape[1] * scale), round(img.shape[0] * scale))
-        cv2.imwrite(str(out / f"{src.stem}.jpg"), cv2.resize(img, size, interpolation=cv2.INTER_CUBIC),
-                    [cv2.IMWRITE_JPEG_QUALITY, 92])
-    print(f"{args.take} of {len(photos)} photos → {out}")
+    out = take_photos(args.src, args.out, args.take, args.long_side)
+    print(f"{args.take} of {len(list_photos(args.src)[0])} photos → {out}")
 
 
 if __name__ == "__main__":

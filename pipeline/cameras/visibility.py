@@ -40,10 +40,12 @@ from scipy.spatial import cKDTree
 from pipeline.cameras.pose_sanity import View, model_views
 
 MIN_CONFLICTS = 5
-"""A view is conflicted with this many conflicts among points at least three views observe (the right models of
-the bench's captures: at most 6 in a view, on a torus's silhouettes)..."""
+"""A view is conflicted with this many conflicts among points at least three views observe (the misjoined mouse's
+8–9; the bench's right models at most 4, but for two views of its finely textured torus with 6, at its silhouettes,
+whose model mapped again is then not kept)..."""
 MIN_CONFLICTS_ANY = 25
-"""... or with this many among all the model's points (the right models: at most 19, DTU scan24's)."""
+"""... or with this many among all the model's points (the misjoined mouse at 12 MP: 42 and 53; the right model of
+DTU scan24's 49 photos at most 19, of 20 of them 48, whose model mapped again is then not kept)."""
 MIN_UNEXPLAINED = 100
 """A pair of photos with this many verified matches, of which the model explains under half, is one it cannot hold:
 the bench's right models leave at most 46 of a pair's matches unexplained (the mouse's 59 photos), the mouse's
