@@ -37,7 +37,16 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.evaluate import FOLDERS, REAL, RUNS, fresh_folder, run_cameras, run_dtu, run_real, run_synthetic  # noqa: E402
+from bench.evaluate import (  # noqa: E402
+    FOLDERS,
+    REAL,
+    RUNS,
+    fresh_folder,
+    run_cameras,
+    run_dtu,
+    run_real,
+    run_synthetic,
+)
 from bench.report import DEFAULTS_VERSION, is_stale, write  # noqa: E402
 
 FLOOR_SCENES = ("cow", "jar", "book")

@@ -50,6 +50,8 @@ MIN_UNEXPLAINED = 100
 """A pair of photos with this many verified matches, of which the model explains under half, is one it cannot hold:
 the bench's right models leave at most 46 of a pair's matches unexplained (the mouse's 59 photos), the mouse's
 misjoined models of 16–30 photos 198–545."""
+EXPLAINED_SHARE = 0.5
+"""A model explains a pair of photos when at least this share of its verified matches fit the model's poses."""
 PAIR_ID_BASE = 2147483647
 """COLMAP's pair id: ``image_id1 * PAIR_ID_BASE + image_id2`` with ``image_id1 < image_id2``."""
 
@@ -122,11 +124,11 @@ def misjoined_group(n_views: int, explained: dict[tuple[int, int], int], conflic
     return {int(v) for v in np.flatnonzero(lab == np.argmax(ends))} if ends.any() else None
 
 
-def joining_pairs(explained: dict[tuple[int, int], int], totals: dict[tuple[int, int], int], group: set[int],
-                  share: float = 0.5) -> list[tuple[int, int]]:
-    """The pairs between ``group`` and the other views of which the model explains at least ``share`` of the
-    verified matches (``totals``): the matches that joined the group where it is."""
-    return [k for k, e in explained.items() if (k[0] in group) != (k[1] in group) and e >= share * totals[k]]
+def joining_pairs(explained: dict[tuple[int, int], int], totals: dict[tuple[int, int], int], group: set[int]
+                  ) -> list[tuple[int, int]]:
+    """The pairs between ``group`` and the other views that the model explains (:data:`EXPLAINED_SHARE` of their
+    verified matches, ``totals``): the matches that joined the group where it is."""
+    return [k for k, e in explained.items() if (k[0] in group) != (k[1] in group) and e >= EXPLAINED_SHARE * totals[k]]
 
 
 def model_observations(rec, min_track: int = 2) -> tuple[list[View], np.ndarray, list[np.ndarray]]:
@@ -228,9 +230,9 @@ def count_conflicts(rec) -> tuple[int, int]:
 
 def unexplained(explained: dict[tuple[int, int], int], totals: dict[tuple[int, int], int],
                 min_matches: int = MIN_UNEXPLAINED) -> list[tuple[int, int]]:
-    """The pairs with at least ``min_matches`` verified matches (``totals``) of which the model explains under half
-    (``explained``), the most matches first."""
-    return sorted((k for k, n in totals.items() if n >= min_matches and explained[k] < 0.5 * n),
+    """The pairs with at least ``min_matches`` verified matches (``totals``) that the model does not explain
+    (``explained``: under :data:`EXPLAINED_SHARE` of them), the most matches first."""
+    return sorted((k for k, n in totals.items() if n >= min_matches and explained[k] < EXPLAINED_SHARE * n),
                   key=lambda k: -totals[k])
 
 
