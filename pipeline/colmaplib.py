@@ -24,6 +24,15 @@ for _level in (pycolmap.logging.INFO, pycolmap.logging.WARNING, pycolmap.logging
     pycolmap.logging.set_log_destination(_level, "")  # no log files
 
 
+PAIR_ID_BASE = 2147483647
+"""COLMAP's database pair id: ``image_id1 * PAIR_ID_BASE + image_id2`` with ``image_id1 < image_id2``."""
+
+
+def pair_images(pair_id: int) -> tuple[int, int]:
+    """The two image ids of a COLMAP database pair id (the smaller first)."""
+    return pair_id // PAIR_ID_BASE, pair_id % PAIR_ID_BASE
+
+
 def warnings_only() -> None:
     """COLMAP's warnings and errors to stderr, its info lines nowhere."""
     pycolmap.logging.alsologtostderr = False

@@ -36,7 +36,7 @@ from pipeline.cameras.sfm import (
     verify_at_poses,
 )
 from pipeline.cameras.visibility import count_conflicts, database_without, misjoined, unexplained_pairs
-from pipeline.colmaplib import write_model
+from pipeline.colmaplib import pair_images, write_model
 from pipeline.errors import StageError
 from pipeline.inputs.photos import (
     downscale,
@@ -364,7 +364,7 @@ def verified_matches(database: Path, registered: set[str]) -> dict[str, tuple[in
         ids = dict(con.execute("select image_id, name from images"))
         out: dict[str, tuple[int, int]] = {}
         for pair_id, rows in con.execute("select pair_id, rows from two_view_geometries where rows > 0"):
-            a, b = ids.get(pair_id // 2147483647), ids.get(pair_id % 2147483647)
+            a, b = (ids.get(i) for i in pair_images(pair_id))
             for one, other in ((a, b), (b, a)):
                 if one is not None:
                     posed, total = out.get(one, (0, 0))

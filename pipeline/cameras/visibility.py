@@ -38,6 +38,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from pipeline.cameras.pose_sanity import View, model_views
+from pipeline.colmaplib import PAIR_ID_BASE, pair_images
 
 MIN_CONFLICTS = 5
 """A view is conflicted with this many conflicts among points at least three views observe (the misjoined mouse's
@@ -52,8 +53,6 @@ the bench's right models leave at most 46 of a pair's matches unexplained (the m
 misjoined models of 16–30 photos 198–545."""
 EXPLAINED_SHARE = 0.5
 """A model explains a pair of photos when at least this share of its verified matches fit the model's poses."""
-PAIR_ID_BASE = 2147483647
-"""COLMAP's pair id: ``image_id1 * PAIR_ID_BASE + image_id2`` with ``image_id1 < image_id2``."""
 
 
 def occlusion_conflicts(views: list[View], points: np.ndarray, observers: list[np.ndarray], radius_px: float = 4.0,
@@ -157,7 +156,7 @@ def explained_matches(rec, database: Path, max_px: float = 4.0) -> tuple[dict, d
                      for i, r, c, d in con.execute("select image_id, rows, cols, data from keypoints") if i in names}
         explained, totals = {}, {}
         for pair_id, rows, data in con.execute("select pair_id, rows, data from two_view_geometries where rows > 0"):
-            a, b = names.get(pair_id // PAIR_ID_BASE), names.get(pair_id % PAIR_ID_BASE)
+            a, b = (names.get(i) for i in pair_images(pair_id))
             if a is None or b is None:
                 continue
             m = np.frombuffer(data, np.uint32).reshape(rows, 2)
@@ -239,7 +238,7 @@ def unexplained(explained: dict[tuple[int, int], int], totals: dict[tuple[int, i
 def unexplained_pairs(rec, database: Path) -> list[tuple[str, str, int, int]]:
     """:func:`unexplained` for a pycolmap model and its COLMAP ``database``: (photo, photo, matches, explained)."""
     explained, totals = explained_matches(rec, database)
-    names = [v.name for v in model_views(rec)]
+    names = [rec.image(i).name for i in rec.reg_image_ids()]  # the order of explained_matches' indices
     return [(names[a], names[b], totals[a, b], explained[a, b]) for a, b in unexplained(explained, totals)]
 
 

@@ -15,7 +15,6 @@ from pipeline.cameras.config import CamerasConfig
 from pipeline.cameras.pose_sanity import View, model_views, rotation_disagreement
 from pipeline.cameras.sfm import Rung
 from pipeline.cameras.visibility import (
-    PAIR_ID_BASE,
     conflicted_views,
     count_conflicts,
     database_without,
@@ -26,7 +25,7 @@ from pipeline.cameras.visibility import (
     unexplained,
 )
 from pipeline.cli import main
-from pipeline.colmaplib import pycolmap
+from pipeline.colmaplib import PAIR_ID_BASE, pycolmap
 from synth import scene_from_dict, write_scene
 from tests.conftest import ROOT
 
