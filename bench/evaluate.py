@@ -244,6 +244,17 @@ def photo_stage_options(options: list[str]) -> list[str]:
     return out
 
 
+def photo_stage_preset(preset: str | None) -> str | None:
+    """``preset`` when configs/<preset>.yaml sets options of the stages run on the whole photo folder (cameras, masks,
+    depth), else None: those stages are then the defaults' and shared between presets."""
+    import yaml
+
+    if not preset:
+        return None
+    sections = yaml.safe_load((ROOT / "configs" / f"{preset}.yaml").read_text()) or {}
+    return preset if any(k in sections for k in ("cameras", "masks", "depth")) else None
+
+
 def train_mesh_texture(ws: Path, preset: str, options: list[str]) -> None:
     """Stages train, mesh and texture with the preset and the knob's options."""
     stages(("train", "mesh", "texture"), ws, config(preset, options))
@@ -438,7 +449,9 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
 
     options = (knobs or {}).get(spec.get("knob"), ([], {}))[0]
     cams_opts = photo_stage_options(options)  # a knob of those stages gets its own SfM run, else the shared one
+    preset = photo_stage_preset(spec["preset"])  # so does a preset that sets them
     full = RUNS / ("dtu_all" + ("-" + "_".join(o.strip("-").replace(".", "_") for o in cams_opts) if cams_opts else "")
+                   + (f"-preset_{preset}" if preset else "")
                    + ("-reference_cameras" if spec.get("reference_cameras") else ""))
     if not (full / ".stages" / "depth.json").exists():
         shutil.rmtree(full, ignore_errors=True)
@@ -447,7 +460,7 @@ def run_dtu(spec: dict, work: Path, knobs: dict | None = None) -> dict:
             from bench.dtu_reference import write_reference_cameras
 
             given = {"given_cameras": write_reference_cameras(DTU, RUNS / "dtu_reference" / "cameras.npz")}
-        stages(("cameras", "masks", "depth"), full, config(None, cams_opts), images=DTU / "images", **given)
+        stages(("cameras", "masks", "depth"), full, config(preset, cams_opts), images=DTU / "images", **given)
     cams = load_cameras(full / "cameras.npz")
     paths = list_images(full / "images")
     names = [p.stem for p in paths]

@@ -9,8 +9,8 @@ The main synthetic scenes stand on a surface, as real objects do: the textured c
 textured jar on a blocky floor, a flat book on a stone-like table top (and, default preset only, a plain stool
 coloured like its floor and an open mug on a table); the cow floating in front of a backdrop is kept as the one
 floating scene. Each runs with the GT cameras and masks (four presets) and photos only (COLMAP + automatic masks,
-default preset; see bench/evaluate.py for the held-out protocol). A knob sweep around the default
-preset runs on the cow with GT cameras; DTU scan24 (49 real photos) runs photos only.
+default preset; see bench/evaluate.py for the held-out protocol); the cow and DTU also with the preview preset. A
+knob sweep around the default preset runs on the cow with GT cameras; DTU scan24 (49 real photos) runs photos only.
 
 Every run is its own process (peak memory = its max RSS) and calls the stage API the CLI calls. Per run:
 seconds per stage, mask IoU (photos only), Chamfer and F-score@1 % of the GT bounding-box diagonal, held-out PSNR,
@@ -152,6 +152,7 @@ def plan(quick: bool) -> list[dict]:
     out = [{"scene": s, "cameras": "gt", "preset": p} for s in FLOOR_SCENES for p in ("fast", "default", "quality")]
     out += [{"scene": s, "cameras": "gt", "preset": "balanced"} for s in FLOOR_SCENES]
     out += [{"scene": s, "cameras": "gt", "preset": "default"} for s in ("cow_float", "stool", "mug")]
+    out += [{"scene": "cow", "cameras": c, "preset": "preview"} for c in ("gt", "sfm")]
     from_photos = (*FLOOR_SCENES, "cow_float", "sphere_board", "jar_alike", "stool", "mug")
     out += [{"scene": s, "cameras": "sfm", "preset": "default"} for s in from_photos]
     out += [{"scene": "cow", "cameras": "gt", "preset": "default", "knob": k} for k in KNOBS]
@@ -163,7 +164,8 @@ def plan(quick: bool) -> list[dict]:
                       "exposure+specular held-out, effect-free training", "exposure", "exposure, appearance",
                       "exposure+specular, view shading", "exposure+specular, appearance + view shading",
                       "view shading")]
-    out += [{"scene": "dtu", "cameras": "sfm", "preset": p} for p in ("fast", "default", "balanced", "quality")]
+    out += [{"scene": "dtu", "cameras": "sfm", "preset": p}
+            for p in ("preview", "fast", "default", "balanced", "quality")]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "balanced"}]
     out += [{"scene": "cow", "cameras": "sfm", "preset": "default", "knob": "view selection", "ablation": True}]
     out += [{"scene": "dtu", "cameras": "sfm", "preset": "default", "knob": k, "ablation": True}
@@ -282,10 +284,11 @@ def merged(path: Path, new: list[dict]) -> list[dict]:
 
 
 def selected(spec: dict, only: str | None) -> bool:
-    """Whether ``--only`` picks ``spec``: one of its comma-separated words is in the scene, knob or condition."""
+    """Whether ``--only`` picks ``spec``: one of its comma-separated words is in the scene, preset, knob or
+    condition."""
     if only is None:
         return True
-    fields = (spec["scene"], spec.get("condition", ""), spec.get("knob") or "")
+    fields = (spec["scene"], spec.get("preset") or "", spec.get("condition", ""), spec.get("knob") or "")
     return any(w in f for w in only.split(",") for f in fields)
 
 
@@ -311,8 +314,8 @@ def main() -> None:
     ap.add_argument("--docs", "--readme", dest="docs", action="store_true",
                     help="write the tables and plot into docs/benchmarks.md (between its BENCH markers)")
     ap.add_argument("--only", type=str, default=None,
-                    help="run only the specs whose scene, knob or cameras-table condition contains this (or one of "
-                         "these, comma-separated)")
+                    help="run only the specs whose scene, preset, knob or cameras-table condition contains this (or "
+                         "one of these, comma-separated)")
     ap.add_argument("--plain", action="store_true",
                     help="run only the rows without a knob: each scene's presets, with GT cameras and from photos")
     ap.add_argument("--photos", action="store_true",

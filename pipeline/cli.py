@@ -54,8 +54,8 @@ def _arguments(sections: list[str], sources: tuple[str, ...]) -> list[tuple]:
 
     fields = [("workspace", tyro.conf.Positional[Annotated[Path, tyro.conf.arg(
                   metavar="WORKSPACE", help="Workspace folder (created; never the photo folder).")]]),
-              ("config", _arg(Optional[Path], "YAML preset (configs/fast.yaml, default.yaml, balanced.yaml, "
-                                             "quality.yaml); the options below override it."),
+              ("config", _arg(Optional[Path], "YAML preset (configs/preview.yaml, fast.yaml, default.yaml, "
+                                             "balanced.yaml, quality.yaml); the options below override it."),
                dataclasses.field(default=None)),
               ("force", _arg(bool, "Redo the stage(s) even when up to date (train also discards its checkpoint)."),
                dataclasses.field(default=False))]

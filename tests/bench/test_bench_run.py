@@ -88,3 +88,19 @@ def test_stale_picks_the_training_rows_of_older_defaults(tmp_path):
     picked = [spec_key(s) for s in stale_specs(specs, path)]
     assert len(picked) == 2 and set(picked) == {spec_key(plain), spec_key(knob)}
     assert stale_specs([current, table], path) == []
+
+
+def test_only_picks_a_presets_rows():
+    from bench.run import plan, selected
+
+    rows = [s for s in plan(False) if selected(s, "preview")]
+    assert {(s["scene"], s["cameras"]) for s in rows} == {("cow", "gt"), ("cow", "sfm"), ("dtu", "sfm")}
+    assert all(s["preset"] == "preview" for s in rows)
+
+
+def test_a_preset_that_sets_the_photo_stages_gets_its_own_dtu_stages():
+    from bench.evaluate import photo_stage_preset
+
+    assert photo_stage_preset("preview") == "preview"  # its cameras and masks options
+    assert photo_stage_preset("balanced") is None  # training and mesh options only: DTU's shared stages
+    assert photo_stage_preset(None) is None

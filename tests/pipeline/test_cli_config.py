@@ -10,7 +10,7 @@ from pipeline.config import Config, load_config
 from tests.conftest import ROOT, cli_options
 
 
-@pytest.mark.parametrize("name", ["fast", "default", "balanced", "quality"])
+@pytest.mark.parametrize("name", ["preview", "fast", "default", "balanced", "quality"])
 def test_presets_load(name):
     cfg = load_config(ROOT / "configs" / f"{name}.yaml")
     assert isinstance(cfg, Config) and cfg.train.iterations > 0
@@ -153,7 +153,7 @@ def test_reconstruct_checks_every_stage_before_the_first():
     with pytest.raises(ValueError, match="texture.size"):
         reconstruct(None, ROOT / "nowhere-this-is-never-created", cfg)
     assert not (ROOT / "nowhere-this-is-never-created").exists()
-    for name in ("fast", "default", "balanced", "quality"):
+    for name in ("preview", "fast", "default", "balanced", "quality"):
         check_config(load_config(ROOT / "configs" / f"{name}.yaml"))
 
 
@@ -252,3 +252,11 @@ def test_pipeline_synth_hands_over_to_the_generator(tmp_path):
                          capture_output=True, text=True)
     assert out.returncode == 2 and "missing.yaml" in out.stderr and len(out.stderr.strip().splitlines()) == 1
     assert not out_dir.exists()
+
+
+def test_the_preview_preset_keeps_the_default_cameras():
+    """A later run with the default preset in the same workspace reuses the preview's cameras stage (its stamp is the
+    hash of the stage's own section), as the README says."""
+    preview = load_config(ROOT / "configs" / "preview.yaml")
+    assert preview.cameras == Config().cameras
+    assert preview.train.iterations < Config().train.iterations
