@@ -234,25 +234,27 @@ def _read_mask(path: Path) -> np.ndarray:
     return read_mask(path) > 0
 
 
+PHOTO_STAGES = ("cameras", "masks", "depth")
+"""The stages run on the whole photo folder before training (their outputs are shared by the rows that train)."""
+
+
 def photo_stage_options(options: list[str]) -> list[str]:
     """The options of a knob that set the stages run on the whole photo folder before training (``--cameras.x v``,
     ``--masks.x v``, ``--depth.x v``), in the CLI's spelling."""
     out = []
     for i, o in enumerate(options):
-        if o.startswith(("--cameras.", "--masks.", "--depth.")):
+        if o.startswith(tuple(f"--{stage}." for stage in PHOTO_STAGES)):
             out += [o] + ([options[i + 1]] if i + 1 < len(options) and not options[i + 1].startswith("--") else [])
     return out
 
 
 def photo_stage_preset(preset: str | None) -> str | None:
-    """``preset`` when configs/<preset>.yaml sets options of the stages run on the whole photo folder (cameras, masks,
-    depth), else None: those stages are then the defaults' and shared between presets."""
-    import yaml
-
+    """``preset`` when configs/<preset>.yaml changes options of the :data:`PHOTO_STAGES`, else None: those stages are
+    then the defaults' and shared between presets."""
     if not preset:
         return None
-    sections = yaml.safe_load((ROOT / "configs" / f"{preset}.yaml").read_text()) or {}
-    return preset if any(k in sections for k in ("cameras", "masks", "depth")) else None
+    cfg, default = config(preset), config(None)
+    return preset if any(getattr(cfg, stage) != getattr(default, stage) for stage in PHOTO_STAGES) else None
 
 
 def train_mesh_texture(ws: Path, preset: str, options: list[str]) -> None:

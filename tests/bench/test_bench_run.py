@@ -101,6 +101,7 @@ def test_only_picks_a_presets_rows():
 def test_a_preset_that_sets_the_photo_stages_gets_its_own_dtu_stages():
     from bench.evaluate import photo_stage_preset
 
-    assert photo_stage_preset("preview") == "preview"  # its cameras and masks options
+    assert photo_stage_preset("preview") == "preview"  # its masks options
+    assert photo_stage_preset("fast") == "fast"  # its cameras' object verification
     assert photo_stage_preset("balanced") is None  # training and mesh options only: DTU's shared stages
     assert photo_stage_preset(None) is None

@@ -9,8 +9,14 @@ from pipeline.cli import main
 from pipeline.config import Config, load_config
 from tests.conftest import ROOT, cli_options
 
+PRESETS = sorted(p.stem for p in (ROOT / "configs").glob("*.yaml"))
 
-@pytest.mark.parametrize("name", ["preview", "fast", "default", "balanced", "quality"])
+
+def test_the_presets_are_found():
+    assert {"preview", "fast", "default", "balanced", "quality"} <= set(PRESETS)
+
+
+@pytest.mark.parametrize("name", PRESETS)
 def test_presets_load(name):
     cfg = load_config(ROOT / "configs" / f"{name}.yaml")
     assert isinstance(cfg, Config) and cfg.train.iterations > 0
@@ -153,7 +159,7 @@ def test_reconstruct_checks_every_stage_before_the_first():
     with pytest.raises(ValueError, match="texture.size"):
         reconstruct(None, ROOT / "nowhere-this-is-never-created", cfg)
     assert not (ROOT / "nowhere-this-is-never-created").exists()
-    for name in ("preview", "fast", "default", "balanced", "quality"):
+    for name in PRESETS:
         check_config(load_config(ROOT / "configs" / f"{name}.yaml"))
 
 
