@@ -107,8 +107,9 @@ def mapped_rung(mapping: Path) -> str:
 
 def from_mapping(mapping: Path):
     """A stand-in for :func:`pipeline.cameras.mapping.map_photos` that returns the saved mapping of ``mapping`` (its SfM
-    input folder copied into the new workspace, so that paths inside it stay valid) and the ladder's rung that
-    mapped it (which decides the final adjustment's passes)."""
+    input folder copied into the new workspace, so that paths inside it stay valid), the ladder's rung that
+    mapped it (which decides the final adjustment's passes) and its pairs in doubt."""
+    from pipeline.cameras.visibility import unexplained_pairs
     from pipeline.colmaplib import pycolmap
 
     rung = mapped_rung(mapping)
@@ -117,7 +118,8 @@ def from_mapping(mapping: Path):
         inp = ws.root / "sfm" / "input"
         shutil.copytree(mapping / "sfm" / "input", inp)
         rec = pycolmap.Reconstruction(mapping / "sfm" / "sparse" / "best")
-        return rec, inp, mapping / "sfm" / "database.db", rung, []
+        database = mapping / "sfm" / "database.db"
+        return rec, inp, database, rung, [], unexplained_pairs(rec, database)
 
     return map_photos
 

@@ -41,8 +41,9 @@ class CamerasConfig:
     global_agreement_deg: PositiveFloat = 5.0
     """The global mapper's views whose rotations differ from the incremental mapper's by more are dropped."""
     regroup: bool = True
-    """Where views see the model's points in front of what they observe (an object with the same pattern on two
-    sides, photos joined at its wrong side), map again without the pairs that join them; the better model is kept."""
+    """Where views see the model's points in front of what they observe, or it cannot hold a pair's many matches (an
+    object with the same pattern on two sides, photos joined at its wrong side), map again without the pairs that
+    join them; the better model is kept."""
     max_reprojection_error: float = 1.0
     """Mean reprojection error (px) above which a model counts as short and the ladder climbs."""
     max_bad_pose_fraction: float = 0.3

@@ -35,7 +35,14 @@ from pipeline.cameras.sfm import (
     verify_again,
     verify_at_poses,
 )
-from pipeline.cameras.visibility import count_conflicts, database_without, misjoined, unexplained_pairs
+from pipeline.cameras.visibility import (
+    count_conflicts,
+    database_without,
+    doubts,
+    misjoined,
+    unexplained_matches,
+    unexplained_pairs,
+)
 from pipeline.colmaplib import pair_images, write_model
 from pipeline.errors import StageError
 from pipeline.inputs.photos import (
@@ -48,6 +55,9 @@ from pipeline.workspace import Workspace
 
 MIN_RUNG_SECONDS = 5.0
 """A rung starts only with at least this much of the SfM time budget left."""
+REJOINED = "rejoined"
+"""The name of a model mapped again where a pair of photos' matches showed a group joined at the wrong side
+(:func:`_regrouped`): its rung's suffix and its database's name."""
 LARGE_PHOTOS = 2.0
 """:func:`keep_object_matches` runs when SfM saw the photos at least this many times the working size (a phone's): at
 the working size it makes the bench's weakly textured jars and the mug worse (held-out PSNR 1.8, 4.0 and 1.1 dB
@@ -98,8 +108,7 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     """Climb the SfM ladder (:mod:`pipeline.cameras.sfm`) until a rung registers every photo with sane poses, then the
     final adjustment (:func:`finish_model`); returns (model, folder of the images SfM saw, summary of the rungs
     tried)."""
-    rec, inp, database, rung, tried = map_photos(ws, photos, cfg)
-    doubtful = unexplained_pairs(rec, database)
+    rec, inp, database, rung, tried, doubtful = map_photos(ws, photos, cfg)
     if doubtful:
         a, b, n, _ = doubtful[0]
         more = f" and {len(doubtful) - 1} more pairs" if len(doubtful) > 1 else ""
@@ -111,7 +120,8 @@ def run_sfm(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     matches = {Path(n).stem: k for n, k in verified_matches(database, reg).items()}
     with heartbeat("cameras: final adjustment of the model"):
         rec, final, object_note = finish_model(ws, rec, database, inp, cfg, rung)
-    return rec, inp, {"rung": rung, "rungs": tried, "final_adjustment": final, "object_matches": object_note,
+    return rec, inp, {"rung": rung, "rungs": tried, "rejoined": rung.endswith(f"-{REJOINED}"),
+                      "final_adjustment": final, "object_matches": object_note,
                       "matches": matches, "unexplained_pairs": [[Path(a).stem, Path(b).stem, n, e]
                                                                 for a, b, n, e in doubtful]}
 
@@ -147,7 +157,7 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
     out photos with matches (:func:`_mapped_globally`); a model from it that is enough ends the ladder, and merging
     continues from it.
     Returns (model as mapped, folder of the images SfM saw, its COLMAP database, the rung's name, summary of the
-    rungs tried)."""
+    rungs tried, the model's :func:`~pipeline.cameras.visibility.unexplained_pairs`)."""
     with heartbeat(f"cameras: reading the {len(photos)} photos"):
         inp, groups, shapes = prepare_sfm_input(ws, photos, cfg)
     names = [p.stem for p in photos]
@@ -201,9 +211,9 @@ def map_photos(ws: Workspace, photos: list[Path], cfg: CamerasConfig):
             break
     if best is not None:  # the ladder is over
         best, _ = _mapped_globally(best, made_by, globalled, work, inp, groups, cfg, names, budget, tried)
-        best = _regrouped(best, work, inp, groups, cfg, names, budget, tried)
+        best, doubtful = _regrouped(best, work, inp, groups, cfg, names, budget, tried)
     _require_credible(None if best is None else best.model, rejected, inp, len(names), cfg.min_registered_fraction)
-    return best.model, inp, best.database, best.rung.name, tried
+    return best.model, inp, best.database, best.rung.name, tried, doubtful
 
 
 def _upsampled_when_weak(rungs: list[Rung], work: Path, inp: Path, names: list[str], cfg: CamerasConfig
@@ -304,32 +314,72 @@ def _global_on_same_matches(work: Path, inp: Path, groups: list[list[str]], rung
 
 
 def _regrouped(best: _Kept, work: Path, inp: Path, groups: list[list[str]], cfg: CamerasConfig, names: list[str],
-               budget: float, tried: list) -> _Kept:
+               budget: float, tried: list) -> tuple[_Kept, list[tuple[str, str, int, int]]]:
     """The ladder's ``best`` model, or, where it joined a group of photos to the others at the wrong side of the
-    object (:func:`pipeline.cameras.visibility.misjoined`, with ``cfg.regroup``), the incremental mapper's model of
-    the same matches without the pairs that joined them, when that one poses as many photos with at most half the
-    conflicts and fewer at points three or more views observe; stopped past half the ``budget``."""
+    object (with ``cfg.regroup``), the incremental mapper's model of the same matches without the pairs that
+    joined them; each mapping stopped past half the ``budget``. Returns the model kept and its
+    :func:`~pipeline.cameras.visibility.unexplained_pairs`.
+
+    Two signs find the group. Its views' points lie in front of what the others observe
+    (:func:`~pipeline.cameras.visibility.misjoined`): the model mapped again is kept when it poses as many photos
+    with at most half the conflicts and fewer at points three or more views observe. Or a pair of photos with many
+    verified matches is one the model does not explain, and the group is the one the model's explained matches set
+    apart from it (:func:`~pipeline.cameras.visibility.doubts`): the model mapped again is kept when it poses as
+    many photos and leaves fewer than half as many of those matches unexplained, with a warning (it can still hold
+    part of the group off its place)."""
     found = misjoined(best.model, best.database) if cfg.regroup else None
-    if found is None:
-        return best
-    group, cut, before = found
-    print(f"cameras: {before[0]} times a point of the model lies in front of one a view observes: "
+    if found is not None:
+        group, cut, before = found
+        print(f"cameras: {before[0]} times a point of the model lies in front of one a view observes: "
+              f"{names_or_count([Path(n).stem for n in group])} may be joined to the others at the wrong side of the "
+              f"object (the same pattern on two sides): mapping again without the {len(cut)} pairs that join them",
+              flush=True)
+        again = _mapped_without(best, cut, "regrouped", work, inp, groups, cfg, names, budget, tried)
+        after = None if again is None else count_conflicts(again.model)
+        if again is None or again.registered < best.registered or after[0] > before[0] / 2 or after[1] >= before[1]:
+            why = "no model" if again is None else f"{again.registered} photos, {after[0]} conflicts"
+            print(f"cameras: the first model is kept ({why} mapped again)")
+        else:
+            print(f"cameras: the model mapped again is kept: {after[0]} conflicts")
+            best = again
+    doubtful, found = doubts(best.model, best.database)
+    if found is None or not cfg.regroup:
+        return best, doubtful
+    group, cut = found
+    a, b, n, _ = doubtful[0]
+    print(f"cameras: the model does not explain the {n} verified matches of {Path(a).stem} with {Path(b).stem}: "
           f"{names_or_count([Path(n).stem for n in group])} may be joined to the others at the wrong side of the "
           f"object (the same pattern on two sides): mapping again without the {len(cut)} pairs that join them",
           flush=True)
+    again = _mapped_without(best, cut, REJOINED, work, inp, groups, cfg, names, budget, tried)
+    left = None if again is None else unexplained_pairs(again.model, best.database)
+    if again is None or again.registered < best.registered or \
+            unexplained_matches(left) * 2 >= unexplained_matches(doubtful):
+        why = "no model" if again is None else \
+            f"{again.registered} photos, {unexplained_matches(left)} matches of pairs unexplained"
+        print(f"cameras: the first model is kept ({why} mapped again)")
+        return best, doubtful
+    print(f"cameras: the model mapped again is kept: {unexplained_matches(left)} matches of pairs unexplained")
+    print("warning: the cameras stage mapped a group of photos again that its first model had posed at the wrong "
+          "side of the object (the same pattern on two sides); part of them can still be off: look at the mesh, and "
+          "if it is wrong, add photos between its sides", file=sys.stderr)
+    return again, left
+
+
+def _mapped_without(best: _Kept, cut: list[tuple[str, str]], name: str, work: Path, inp: Path,
+                    groups: list[list[str]], cfg: CamerasConfig, names: list[str], budget: float, tried: list
+                    ) -> _Kept | None:
+    """The incremental mapper's model of ``best``'s matches without the photo pairs ``cut`` (judged as the ladder's
+    rungs are, :func:`_judge`; stopped past half the ``budget``), or None; its rung is ``best``'s, ``name``
+    appended, and its database ``work/<name>.db``."""
     t0 = time.perf_counter()
-    database = database_without(best.database, cut, work / "regrouped.db")
-    rung = replace(best.rung, name=f"{best.rung.name}-regrouped", mapper="incremental")
+    database = database_without(best.database, cut, work / f"{name}.db")
+    rung = replace(best.rung, name=f"{best.rung.name}-{name}", mapper="incremental")
     rec, _, steps, err = run_rung(work, inp, groups, rung, cfg.camera_model, cfg.matching, cfg.seed,
                                   (None, database), sfm_threads(cfg), time.time() + budget / 2)
     judged = _judge(rec, rung.name, time.perf_counter() - t0, steps, err, inp, names, cfg, None, tried, [])
-    after = None if judged is None else count_conflicts(rec)
-    if judged is None or judged[0]["registered"] < best.registered or after[0] > before[0] / 2 or \
-            after[1] >= before[1]:
-        why = "no model" if judged is None else f"{judged[0]['registered']} photos, {after[0]} conflicts"
-        print(f"cameras: the first model is kept ({why} mapped again)")
-        return best
-    print(f"cameras: the model mapped again is kept: {after[0]} conflicts")
+    if judged is None:
+        return None
     return _Kept(judged[0]["registered"], judged[0]["mean_reprojection_error"], rec, rung, database)
 
 

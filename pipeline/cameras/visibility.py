@@ -17,12 +17,13 @@ front of the group's.
 * :func:`misjoined_group` finds the group: the photos split into groups joined by pairs with at least a number of
   matches the model explains (:func:`explained_matches`), the least number that puts most conflicts between groups.
 * :func:`unexplained_pairs`: where the conflicts do not show a misjoined group (it lies on the object's surface,
-  turned about its axis), a pair of photos with many verified matches that the model does not explain does; the
-  stage then warns.
+  turned about its axis), a pair of photos with many verified matches that the model does not explain does, and
+  :func:`doubts` finds the group those pairs set apart (:func:`split_off`); the stage maps again, and warns.
 * :func:`joining_pairs` are the pairs between the group and the others whose matches the model explains: the false
   matches that joined them. Mapped again without them, the group joins the others by the matches it has left, and
   that model is kept when it poses as many photos with at most half the conflicts and fewer at points three or more
-  views observe (:func:`pipeline.cameras.mapping.map_photos`): a right model without those never changes.
+  views observe, or, for a group found by its pairs in doubt, under half as many of their matches unexplained
+  (:func:`pipeline.cameras.mapping._regrouped`): a right model without those never changes.
 """
 
 from __future__ import annotations
@@ -92,14 +93,23 @@ def occlusion_conflicts(views: list[View], points: np.ndarray, observers: list[n
 
 def misjoined_group(n_views: int, explained: dict[tuple[int, int], int], conflicts: list[tuple[int, int]],
                     observers: list[np.ndarray], conflicted: set[int]) -> set[int] | None:
-    """The views a model joined to the others where it should not have, or None. Each ``conflicted`` view's
-    :func:`occlusion_conflicts` set it against the views observing its conflicting points. The views split into
-    groups joined by pairs of at least T ``explained`` matches (view pair → matches the model explains); T is the
-    least at which half of those conflicts lie between groups. The group is the one, the largest apart, that most of
-    the conflicts touch (None when no T splits them)."""
+    """The views a model joined to the others where it should not have, or None: :func:`split_off` by the pairs of
+    views each ``conflicted`` view's :func:`occlusion_conflicts` set against each other (the view, and each view
+    observing its conflicting point)."""
     if len(conflicted) < 2 or not explained:
         return None
     pairs = [(v, o) for v, p in conflicts if v in conflicted for o in observers[p] if o != v]
+    return split_off(n_views, explained, pairs)
+
+
+def split_off(n_views: int, explained: dict[tuple[int, int], int], pairs: list[tuple[int, int]], share: float = 0.5
+              ) -> set[int] | None:
+    """The group of views that ``pairs`` of views (at odds in the model) set apart from the others, or None. The
+    views split into groups joined by pairs of at least T ``explained`` matches (view pair → matches the model
+    explains); T is the least at which ``share`` of ``pairs`` lie between groups. The group is the one, the largest
+    apart, that most of the pairs touch, the smaller of two touched as often (None when no T splits them)."""
+    if not pairs or not explained:
+        return None
     (a, b), w = np.array(list(explained), int).T, np.array(list(explained.values()))
 
     def labels(threshold: int) -> np.ndarray:
@@ -108,7 +118,7 @@ def misjoined_group(n_views: int, explained: dict[tuple[int, int], int], conflic
         return connected_components(graph, directed=False)[1]
 
     def apart(lab: np.ndarray) -> bool:
-        return sum(lab[v] != lab[o] for v, o in pairs) * 2 >= len(pairs)
+        return sum(lab[v] != lab[o] for v, o in pairs) >= share * len(pairs)
 
     thresholds = np.unique(np.append(w, w.max() + 1))
     lo, hi = 0, len(thresholds) - 1  # the least threshold that splits: more matches needed, more groups
@@ -119,8 +129,12 @@ def misjoined_group(n_views: int, explained: dict[tuple[int, int], int], conflic
         lo, hi = (lo, mid) if apart(labels(thresholds[mid])) else (mid + 1, hi)
     lab = labels(thresholds[lo])
     ends = np.bincount([lab[i] for pair in pairs for i in pair], minlength=lab.max() + 1)
-    ends[np.argmax(np.bincount(lab))] = 0  # the largest group is the model the others were joined to
-    return {int(v) for v in np.flatnonzero(lab == np.argmax(ends))} if ends.any() else None
+    sizes = np.bincount(lab)
+    ends[np.argmax(sizes)] = 0  # the largest group is the model the others were joined to
+    if not ends.any():
+        return None
+    group = max(np.flatnonzero(ends), key=lambda g: (ends[g], -sizes[g]))  # of groups touched as often, the smaller
+    return {int(v) for v in np.flatnonzero(lab == group)}
 
 
 def joining_pairs(explained: dict[tuple[int, int], int], totals: dict[tuple[int, int], int], group: set[int]
@@ -237,9 +251,29 @@ def unexplained(explained: dict[tuple[int, int], int], totals: dict[tuple[int, i
 
 def unexplained_pairs(rec, database: Path) -> list[tuple[str, str, int, int]]:
     """:func:`unexplained` for a pycolmap model and its COLMAP ``database``: (photo, photo, matches, explained)."""
+    return doubts(rec, database)[0]
+
+
+def doubts(rec, database: Path) -> tuple[list[tuple[str, str, int, int]],
+                                         tuple[list[str], list[tuple[str, str]]] | None]:
+    """A model's :func:`unexplained_pairs` and the group of photos they set apart from the others (:func:`split_off`,
+    every pair between groups) as (its photos, the pairs that join it to the others, :func:`joining_pairs`), or None.
+    The strongest matches join each side of the object within itself; the pairs in doubt are true matches across
+    the object that false ones outvoted, so the group is the one they all leave (16 of the mouse's photos, mapped
+    with guided matching: five photos 56° off, four of them in doubt with one photo of the others)."""
     explained, totals = explained_matches(rec, database)
     names = [rec.image(i).name for i in rec.reg_image_ids()]  # the order of explained_matches' indices
-    return [(names[a], names[b], totals[a, b], explained[a, b]) for a, b in unexplained(explained, totals)]
+    doubtful = unexplained(explained, totals)
+    group = split_off(len(names), explained, doubtful, share=1.0)
+    cut = joining_pairs(explained, totals, group) if group else []
+    found = (sorted(names[v] for v in group), [(names[a], names[b]) for a, b in cut]) if cut else None
+    return [(names[a], names[b], totals[a, b], explained[a, b]) for a, b in doubtful], found
+
+
+def unexplained_matches(doubtful: list[tuple[str, str, int, int]]) -> int:
+    """The verified matches of the pairs in ``doubtful`` (:func:`unexplained_pairs`) that their model leaves
+    unexplained."""
+    return sum(n - e for _, _, n, e in doubtful)
 
 
 def database_without(database: Path, pairs: list[tuple[str, str]], out: Path) -> Path:

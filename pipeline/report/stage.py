@@ -159,6 +159,10 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
                    f"{html.escape(a)} with {html.escape(b)}" + (f" ({len(doubtful) - 1} more such pairs)" if
                                                                  len(doubtful) > 1 else "")
                    + ": a group of photos may be posed at the wrong side of the object.</li>")
+    if cameras_stamp.get("rejoined"):
+        out.append("<li><b>Cameras mapped again</b>: the first model posed a group of photos at the wrong side of the "
+                   "object (a pair of photos' matches showed it); the model mapped again explains them, but part of "
+                   "the group can still be off: look at the mesh.</li>")
     spread = cameras_stamp.get("exposure_spread")
     if spread is not None:
         out.append(f"<li>The photos' exposure differs by {100 * spread:.1f} % (per-view gains measured on the SfM "

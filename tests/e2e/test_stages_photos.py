@@ -563,9 +563,9 @@ def test_a_model_from_a_later_rung_gets_the_final_passes(photo_ws, tmp_path, mon
     saved = from_mapping(plain)
 
     def climbed(*args):
-        rec, inp, database, rung, tried = saved(*args)
+        rec, inp, database, rung, tried, doubtful = saved(*args)
         assert rung == "default"
-        return rec, inp, database, "dsp", tried
+        return rec, inp, database, "dsp", tried, doubtful
 
     images = ["--images", str(syn / "images")]
     monkeypatch.setattr(mapping, "map_photos", saved)

@@ -22,7 +22,9 @@ from pipeline.cameras.visibility import (
     misjoined_group,
     occlusion_conflicts,
     sampson_px,
+    split_off,
     unexplained,
+    unexplained_matches,
 )
 from pipeline.cli import main
 from pipeline.colmaplib import PAIR_ID_BASE, pycolmap
@@ -108,6 +110,51 @@ def test_the_misjoined_group_is_the_one_the_conflicts_part_from_the_others():
     assert misjoined_group(12, explained, conflicts, observers, {5}) is None  # one view alone
 
 
+def test_a_pair_the_model_does_not_explain_splits_off_the_group_it_was_joined_to_falsely():
+    """Views 0–5 hold together by 300 explained matches a pair, as do 6–11; false matches join 2 to 8 and 4 to 10
+    (40 each, explained), while the 400 true matches of 5 with 6 are not. The pair 5–6 sets the groups 0–5 and 6–11
+    apart; of two as large, the one with the first view stands for the model, and 6–11 is the group. The pairs that
+    joined it are the false ones."""
+    explained = {(i, i + 1): 300 for i in range(11) if i != 5}
+    explained |= {(2, 8): 40, (4, 10): 40, (5, 6): 10}
+    totals = dict(explained) | {(5, 6): 400}
+    doubtful = unexplained(explained, totals)
+    assert doubtful == [(5, 6)]
+    group = split_off(12, explained, doubtful)
+    assert group == {6, 7, 8, 9, 10, 11}
+    assert sorted(joining_pairs(explained, totals, group)) == [(2, 8), (4, 10)]
+    assert split_off(12, explained, []) is None
+    assert unexplained_matches([("a", "b", 400, 10), ("c", "d", 120, 50)]) == 460
+
+
+@pytest.mark.parametrize("registered, left, kept", [
+    (16, [], "rejoined"), (16, [("a.png", "f.png", 300, 110)], "rejoined"), (15, [], "first"),
+    (16, [("a.png", "f.png", 300, 100)], "first")])
+def test_the_rejoined_model_is_kept_only_with_as_many_photos_and_under_half_the_unexplained_matches(
+        tmp_path, monkeypatch, capsys, registered, left, kept):
+    """The first model leaves 399 of a pair's 409 matches unexplained. Mapped again without the pairs that joined
+    the group, it is kept with as many photos and under half those matches unexplained (190 of another pair: kept;
+    200: not), with a warning that part of the group can still be off."""
+    first = mapping._Kept(16, 0.4, "first model", Rung("default"), tmp_path / "m.db")
+    doubtful = [("a.png", "b.png", 409, 10)]
+    monkeypatch.setattr(mapping, "misjoined", lambda rec, db: None)
+    monkeypatch.setattr(mapping, "doubts", lambda rec, db: (doubtful, (["a.png", "c.png"], [("a.png", "d.png")])))
+    monkeypatch.setattr(mapping, "database_without", lambda db, cut, out: out)
+    monkeypatch.setattr(mapping, "run_rung", lambda *a, **k: ("rejoined model", None, {}, None))
+    monkeypatch.setattr(mapping, "_judge", lambda rec, *a: ({"registered": registered,
+                                                              "mean_reprojection_error": 0.4}, []))
+    monkeypatch.setattr(mapping, "unexplained_pairs", lambda rec, db: left)
+    best, pairs = mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(), ["x"] * 16, 100.0, [])
+    assert best.model == f"{kept} model" and pairs == (left if kept == "rejoined" else doubtful)
+    assert (best.rung.name, best.database.name) == (("default-rejoined", "rejoined.db") if kept == "rejoined"
+                                                    else ("default", "m.db"))
+    out = capsys.readouterr()
+    assert "does not explain the 409 verified matches of a with b" in out.out and "without the 1 pairs" in out.out
+    assert ("part of them can still be off" in out.err) == (kept == "rejoined")
+    off = mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(regroup=False), ["x"] * 16, 100.0, [])
+    assert off == (first, doubtful)
+
+
 def test_a_view_is_conflicted_by_few_conflicts_at_long_tracks_or_many_at_any():
     """One view looks along +z at a row of points 10 away, each observed by it and two others, and at 5 points in
     front of them that two other views observe: 5 conflicts among points three views observe make it conflicted,
@@ -171,19 +218,21 @@ def test_the_regrouped_model_is_kept_only_with_as_many_photos_and_half_the_confl
     monkeypatch.setattr(mapping, "_judge", lambda rec, *a: ({"registered": registered,
                                                               "mean_reprojection_error": 0.4}, []))
     monkeypatch.setattr(mapping, "count_conflicts", lambda rec: after)
-    best = mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(), ["x"] * 24, 100.0, [])
-    assert best.model == f"{kept} model"
+    monkeypatch.setattr(mapping, "doubts", lambda rec, db: ([], None))
+    best, doubtful = mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(), ["x"] * 24, 100.0, [])
+    assert best.model == f"{kept} model" and doubtful == []
     assert (best.rung.name == "default-regrouped") == (kept == "regrouped")
     assert "mapping again without the 1 pairs" in capsys.readouterr().out
-    off = mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(regroup=False), ["x"] * 24, 100.0, [])
+    off, _ = mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(regroup=False), ["x"] * 24, 100.0, [])
     assert off is first
 
 
 def test_a_model_without_conflicts_is_not_mapped_again(tmp_path, monkeypatch):
     first = mapping._Kept(24, 0.4, SimpleNamespace(), Rung("default"), tmp_path / "m.db")
     monkeypatch.setattr(mapping, "misjoined", lambda rec, db: None)
+    monkeypatch.setattr(mapping, "doubts", lambda rec, db: ([], None))
     monkeypatch.setattr(mapping, "run_rung", lambda *a, **k: pytest.fail("mapped again"))
-    assert mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(), [], 100.0, []) is first
+    assert mapping._regrouped(first, tmp_path, tmp_path, [], CamerasConfig(), [], 100.0, []) == (first, [])
 
 
 def test_a_pair_with_many_matches_the_model_does_not_explain_is_in_doubt():
@@ -198,24 +247,23 @@ def test_the_cameras_stage_warns_of_a_pair_its_model_cannot_hold(tmp_path, monke
     the pair in the stage's record."""
     rec = SimpleNamespace(reg_image_ids=lambda: [])
     monkeypatch.setattr(mapping, "map_photos", lambda ws, photos, cfg: (rec, tmp_path, tmp_path / "m.db", "default",
-                                                                         []))
-    monkeypatch.setattr(mapping, "unexplained_pairs", lambda rec, db: [("59F0.png", "CEAC.png", 545, 41)])
+                                                                         [], [("59F0.png", "CEAC.png", 545, 41)]))
     monkeypatch.setattr(mapping, "verified_matches", lambda db, reg: {})
     monkeypatch.setattr(mapping, "finish_model", lambda ws, rec, db, inp, cfg, rung: (rec, [], None))
     _, _, info = mapping.run_sfm(SimpleNamespace(root=tmp_path), [], CamerasConfig())
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "does not explain the 545 verified matches of 59F0 with CEAC" in err
-    assert info["unexplained_pairs"] == [["59F0", "CEAC", 545, 41]]
+    assert info["unexplained_pairs"] == [["59F0", "CEAC", 545, 41]] and info["rejoined"] is False
+    monkeypatch.setattr(mapping, "map_photos", lambda ws, photos, cfg: (rec, tmp_path, tmp_path / "m.db",
+                                                                         "merge-rejoined", [], []))
+    _, _, info = mapping.run_sfm(SimpleNamespace(root=tmp_path), [], CamerasConfig())
+    assert info["rejoined"] is True and info["unexplained_pairs"] == [] and capsys.readouterr().err == ""
 
 
-@pytest.mark.slow
-@pytest.mark.long
-def test_a_group_moved_off_its_place_is_mapped_again_by_colmap_and_put_back(tmp_path, monkeypatch, capsys):
-    """16 photos of the textured torus posed by the cameras stage; three of its views moved 0.6 of the object's
-    radius sideways, as a misjoined model would hold them: their views then see points in front of what they observe.
-    The ladder's regrouping maps the same matches again (COLMAP, in its child process, on a copy of the database
-    without the pairs of the three with a fourth view) and keeps the new model, whose rotations agree with the stage's
-    own within 1° and which has fewer conflicts."""
+def _torus_with_a_group_moved(tmp_path: Path, group: tuple[int, ...] = (0, 1, 2)):
+    """16 photos of the textured torus posed by the cameras stage, and the same model with its views ``group`` (their
+    places in the order of image ids) moved 0.6 of the object's radius sideways, as a misjoined model would hold
+    them: (workspace, matches database, the right model, the moved one, its image ids)."""
     spec = yaml.safe_load((ROOT / "configs" / "scenes" / "torus_backdrop.yaml").read_text())
     spec["cameras"].update(n_views=16, heldout=0)
     write_scene(scene_from_dict(spec, ROOT / "configs" / "scenes"), tmp_path / "syn")
@@ -228,10 +276,21 @@ def test_a_group_moved_off_its_place_is_mapped_again_by_colmap_and_put_back(tmp_
     ids = sorted(moved.reg_image_ids())
     points = np.array([p.xyz for p in moved.points3D.values()])
     shift = np.array([0.6 * np.median(np.linalg.norm(points - np.median(points, 0), axis=1)), 0, 0])
-    for i in ids[:3]:
+    for i in (ids[k] for k in group):
         frame = moved.frame(moved.image(i).frame_id)
         R, t = frame.rig_from_world.rotation.matrix(), frame.rig_from_world.translation
         frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t - R @ shift)
+    return ws, database, right, moved, ids
+
+
+@pytest.mark.slow
+@pytest.mark.long
+def test_a_group_moved_off_its_place_is_mapped_again_by_colmap_and_put_back(tmp_path, monkeypatch, capsys):
+    """Three views of the torus moved off their place see points in front of what they observe. The ladder's
+    regrouping maps the same matches again (COLMAP, in its child process, on a copy of the database without the
+    pairs of the three with a fourth view) and keeps the new model, whose rotations agree with the stage's own within
+    1° and which has fewer conflicts."""
+    ws, database, right, moved, ids = _torus_with_a_group_moved(tmp_path)
     before = count_conflicts(moved)
     assert before[1] > count_conflicts(right)[1]
     group = [moved.image(i).name for i in ids[:3]]
@@ -239,10 +298,33 @@ def test_a_group_moved_off_its_place_is_mapped_again_by_colmap_and_put_back(tmp_
     monkeypatch.setattr(mapping, "misjoined", lambda rec, db: (group, cut, before))
     names = [moved.image(i).name.rsplit(".", 1)[0] for i in ids]
     first = mapping._Kept(16, 0.5, moved, Rung("default"), database)
-    kept = mapping._regrouped(first, ladder, ws / "sfm" / "input", [sorted(moved.image(i).name for i in ids)],
-                              CamerasConfig(), names, 100.0, [])
+    kept, doubtful = mapping._regrouped(first, ws / "sfm" / "ladder", ws / "sfm" / "input",
+                                        [sorted(moved.image(i).name for i in ids)], CamerasConfig(), names, 100.0, [])
     assert kept.rung.name == "default-regrouped" and kept.registered == 16, capsys.readouterr().out
+    assert doubtful == []  # the model kept explains its pairs' matches
     after = count_conflicts(kept.model)
     assert after[0] <= before[0] / 2 and after[1] < before[1]
+    angles = rotation_disagreement(model_views(kept.model), model_views(right))
+    assert max(angles.values()) < 1.0, angles
+
+
+@pytest.mark.slow
+@pytest.mark.long
+def test_a_group_whose_pairs_the_model_cannot_hold_is_mapped_again_by_colmap_and_put_back(tmp_path, monkeypatch,
+                                                                                           capsys):
+    """Three neighbouring views of the torus's lower ring moved off their place, the conflicts left unread: the pairs
+    of photos whose many matches the moved model does not explain set the group apart
+    (:func:`pipeline.cameras.visibility.doubts`), COLMAP maps the matches again without the pairs that join it, and
+    the model kept agrees with the stage's own within 1° and leaves no pair in doubt, with the warning."""
+    ws, database, right, moved, ids = _torus_with_a_group_moved(tmp_path, (1, 3, 5))
+    assert mapping.doubts(moved, database)[1][0] == ["000001.png", "000003.png", "000005.png"]
+    monkeypatch.setattr(mapping, "misjoined", lambda rec, db: None)
+    names = [moved.image(i).name.rsplit(".", 1)[0] for i in ids]
+    first = mapping._Kept(16, 0.5, moved, Rung("default"), database)
+    kept, doubtful = mapping._regrouped(first, ws / "sfm" / "ladder", ws / "sfm" / "input",
+                                        [sorted(moved.image(i).name for i in ids)], CamerasConfig(), names, 100.0, [])
+    out = capsys.readouterr()
+    assert kept.rung.name == "default-rejoined" and kept.registered == 16, out.out
+    assert doubtful == [] and "part of them can still be off" in out.err
     angles = rotation_disagreement(model_views(kept.model), model_views(right))
     assert max(angles.values()) < 1.0, angles

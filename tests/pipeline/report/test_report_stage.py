@@ -35,6 +35,12 @@ def test_cameras_in_doubt_are_said_with_the_pair_the_model_cannot_hold(tmp_path)
     assert "Cameras in doubt" not in capture_section(Workspace(tmp_path / "ws"), {"rung": "default"})
 
 
+def test_cameras_mapped_again_for_a_pair_in_doubt_are_said():
+    stamp = {"rung": "merge-rejoined", "rejoined": True}
+    assert "Cameras mapped again</b>: the first model posed a group" in capture_section(Workspace("ws"), stamp)
+    assert "Cameras mapped again" not in capture_section(Workspace("ws"), {"rung": "merge"})
+
+
 def test_the_objects_size_in_millimetres_with_a_board_else_the_scale_is_arbitrary():
     """The texture stage's measured box: in mm when a printed board put the mesh in metres; without one, no number."""
     metric = {"object_size": {"height": 0.1234, "width": 0.0806, "depth": 0.05, "units": "metres"}}
