@@ -330,10 +330,7 @@ def _regrouped(best: _Kept, work: Path, inp: Path, groups: list[list[str]], cfg:
     found = misjoined(best.model, best.database) if cfg.regroup else None
     if found is not None:
         group, cut, before = found
-        print(f"cameras: {before[0]} times a point of the model lies in front of one a view observes: "
-              f"{names_or_count([Path(n).stem for n in group])} may be joined to the others at the wrong side of the "
-              f"object (the same pattern on two sides): mapping again without the {len(cut)} pairs that join them",
-              flush=True)
+        _say_mapping_again(f"{before[0]} times a point of the model lies in front of one a view observes", group, cut)
         again = _mapped_without(best, cut, "regrouped", work, inp, groups, cfg, names, budget, tried)
         after = None if again is None else count_conflicts(again.model)
         if again is None or again.registered < best.registered or after[0] > before[0] / 2 or after[1] >= before[1]:
@@ -347,10 +344,8 @@ def _regrouped(best: _Kept, work: Path, inp: Path, groups: list[list[str]], cfg:
         return best, doubtful
     group, cut = found
     a, b, n, _ = doubtful[0]
-    print(f"cameras: the model does not explain the {n} verified matches of {Path(a).stem} with {Path(b).stem}: "
-          f"{names_or_count([Path(n).stem for n in group])} may be joined to the others at the wrong side of the "
-          f"object (the same pattern on two sides): mapping again without the {len(cut)} pairs that join them",
-          flush=True)
+    _say_mapping_again(f"the model does not explain the {n} verified matches of {Path(a).stem} with {Path(b).stem}",
+                       group, cut)
     again = _mapped_without(best, cut, REJOINED, work, inp, groups, cfg, names, budget, tried)
     left = None if again is None else unexplained_pairs(again.model, best.database)
     if again is None or again.registered < best.registered or \
@@ -364,6 +359,14 @@ def _regrouped(best: _Kept, work: Path, inp: Path, groups: list[list[str]], cfg:
           "side of the object (the same pattern on two sides); part of them can still be off: look at the mesh, and "
           "if it is wrong, add photos between its sides", file=sys.stderr)
     return again, left
+
+
+def _say_mapping_again(sign: str, group: list[str], cut: list[tuple[str, str]]) -> None:
+    """The line that says the model is mapped again: the ``sign`` of a misjoined ``group`` (photo names) and the
+    pairs ``cut`` that joined it."""
+    print(f"cameras: {sign}: {names_or_count([Path(n).stem for n in group])} may be joined to the others at the wrong "
+          f"side of the object (the same pattern on two sides): mapping again without the {len(cut)} pairs that join "
+          "them", flush=True)
 
 
 def _mapped_without(best: _Kept, cut: list[tuple[str, str]], name: str, work: Path, inp: Path,
