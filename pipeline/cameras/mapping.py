@@ -318,31 +318,43 @@ def _regrouped(best: _Kept, work: Path, inp: Path, groups: list[list[str]], cfg:
     """The ladder's ``best`` model, or, where it joined a group of photos to the others at the wrong side of the
     object (with ``cfg.regroup``), the incremental mapper's model of the same matches without the pairs that
     joined them; each mapping stopped past half the ``budget``. Returns the model kept and its
-    :func:`~pipeline.cameras.visibility.unexplained_pairs`.
-
-    Two signs find the group. Its views' points lie in front of what the others observe
-    (:func:`~pipeline.cameras.visibility.misjoined`): the model mapped again is kept when it poses as many photos
-    with at most half the conflicts and fewer at points three or more views observe. Or a pair of photos with many
-    verified matches is one the model does not explain, and the group is the one the model's explained matches set
-    apart from it (:func:`~pipeline.cameras.visibility.doubts`): the model mapped again is kept when it poses as
-    many photos and leaves fewer than half as many of those matches unexplained, with a warning (it can still hold
-    part of the group off its place)."""
-    found = misjoined(best.model, best.database) if cfg.regroup else None
-    if found is not None:
-        group, cut, before = found
-        _say_mapping_again(f"{before[0]} times a point of the model lies in front of one a view observes", group, cut)
-        again = _mapped_without(best, cut, "regrouped", work, inp, groups, cfg, names, budget, tried)
-        after = None if again is None else count_conflicts(again.model)
-        if again is None or again.registered < best.registered or after[0] > before[0] / 2 or after[1] >= before[1]:
-            why = "no model" if again is None else f"{again.registered} photos, {after[0]} conflicts"
-            print(f"cameras: the first model is kept ({why} mapped again)")
-        else:
-            print(f"cameras: the model mapped again is kept: {after[0]} conflicts")
-            best = again
+    :func:`~pipeline.cameras.visibility.unexplained_pairs`. Two signs find the group, in turn: its views' points lie
+    in front of what the others observe (:func:`_regrouped_by_conflicts`), or a pair of photos with many verified
+    matches is one the model does not explain (:func:`_rejoined`)."""
+    if cfg.regroup:
+        best = _regrouped_by_conflicts(best, work, inp, groups, cfg, names, budget, tried)
     doubtful, found = doubts(best.model, best.database)
     if found is None or not cfg.regroup:
         return best, doubtful
-    group, cut = found
+    return _rejoined(best, doubtful, *found, work, inp, groups, cfg, names, budget, tried)
+
+
+def _regrouped_by_conflicts(best: _Kept, work: Path, inp: Path, groups: list[list[str]], cfg: CamerasConfig,
+                            names: list[str], budget: float, tried: list) -> _Kept:
+    """:func:`_regrouped` by the conflicts: ``best``, or its model mapped again without the pairs that join the group
+    they point to, when that poses as many photos with at most half the conflicts and fewer at points three or more
+    views observe."""
+    found = misjoined(best.model, best.database)
+    if found is None:
+        return best
+    group, cut, before = found
+    _say_mapping_again(f"{before[0]} times a point of the model lies in front of one a view observes", group, cut)
+    again = _mapped_without(best, cut, "regrouped", work, inp, groups, cfg, names, budget, tried)
+    after = None if again is None else count_conflicts(again.model)
+    if again is None or again.registered < best.registered or after[0] > before[0] / 2 or after[1] >= before[1]:
+        why = "no model" if again is None else f"{again.registered} photos, {after[0]} conflicts"
+        print(f"cameras: the first model is kept ({why} mapped again)")
+        return best
+    print(f"cameras: the model mapped again is kept: {after[0]} conflicts")
+    return again
+
+
+def _rejoined(best: _Kept, doubtful: list[tuple[str, str, int, int]], group: list[str], cut: list[tuple[str, str]],
+              work: Path, inp: Path, groups: list[list[str]], cfg: CamerasConfig, names: list[str], budget: float,
+              tried: list) -> tuple[_Kept, list[tuple[str, str, int, int]]]:
+    """:func:`_regrouped` by the pairs in doubt (``doubtful``, which set apart ``group``, joined to the others by the
+    pairs ``cut``): ``best``, or its model mapped again without ``cut`` when that poses as many photos and leaves
+    under half as many of those matches unexplained (with a warning); the model kept and its pairs in doubt."""
     a, b, n, _ = doubtful[0]
     _say_mapping_again(f"the model does not explain the {n} verified matches of {Path(a).stem} with {Path(b).stem}",
                        group, cut)

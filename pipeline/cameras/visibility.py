@@ -260,7 +260,7 @@ def doubts(rec, database: Path) -> tuple[list[tuple[str, str, int, int]],
     every pair between groups) as (its photos, the pairs that join it to the others, :func:`joining_pairs`), or None.
     The strongest matches join each side of the object within itself; the pairs in doubt are true matches across
     the object that false ones outvoted, so the group is the one they all leave (16 of the mouse's photos, mapped
-    with guided matching: five photos 56° off, four of them in doubt with one photo of the others)."""
+    with guided matching: five photos 56° off, each of them in doubt with one photo of the others)."""
     explained, totals = explained_matches(rec, database)
     names = [rec.image(i).name for i in rec.reg_image_ids()]  # the order of explained_matches' indices
     doubtful = unexplained(explained, totals)

@@ -127,6 +127,15 @@ def test_a_pair_the_model_does_not_explain_splits_off_the_group_it_was_joined_to
     assert unexplained_matches([("a", "b", 400, 10), ("c", "d", 120, 50)]) == 460
 
 
+def test_of_two_groups_the_pairs_touch_as_often_the_smaller_is_split_off():
+    """Views 0, 2, 4, 6 hold together, as do 1, 3, 5; view 7 is joined to each view by 10 explained matches, and its
+    pairs with 1 and 3 are in doubt. Apart, the group 1–5 and view 7 each hold one end of both pairs: the smaller,
+    view 7, is the group."""
+    explained = {(0, 2): 300, (2, 4): 300, (4, 6): 300, (1, 3): 300, (3, 5): 300}
+    explained |= {(v, 7): 10 for v in range(7)}
+    assert split_off(8, explained, [(1, 7), (3, 7)], share=1.0) == {7}
+
+
 @pytest.mark.parametrize("registered, left, kept", [
     (16, [], "rejoined"), (16, [("a.png", "f.png", 300, 110)], "rejoined"), (15, [], "first"),
     (16, [("a.png", "f.png", 300, 100)], "first")])
