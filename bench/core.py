@@ -114,12 +114,12 @@ def time_to_chamfer(ws: Path, dev: torch.device, cfg: TrainConfig, target: float
                           "fscore": r["fscore"]})
             print(f"  step {tr.step:5d}  {setup + tr.elapsed:7.1f} s  chamfer {100 * r['chamfer_rel']:.3f} %  "
                   f"F {r['fscore']:.3f}", flush=True)
-            if r["chamfer_rel"] <= target or setup + tr.elapsed > budget or tr.step >= cfg.iterations:
+            if r["chamfer_rel"] <= target or setup + tr.elapsed > budget or tr.step >= tr.cfg.iterations:
                 break
             tr.fit(stop_after=every)
         hit = next((c for c in curve if c["chamfer_rel"] <= target), None)
         return {"seconds_to_target": None if hit is None else hit["train_s"], "curve": curve,
-                "rays_per_s": tr.step * cfg.batch_rays / max(tr.elapsed, 1e-9) if tr.step else None}
+                "rays_per_s": tr.step * tr.cfg.batch_rays / max(tr.elapsed, 1e-9) if tr.step else None}
 
 
 def main() -> None:

@@ -1,10 +1,13 @@
-"""Training on a GPU against 2 CPU cores: the train stage of the bench's cow (GT cameras) and DTU scan24 (photos only)
-workspaces on whatever device ``device: auto`` finds, then mesh, texture and held-out PSNR as in ``bench/run.py``.
+"""Training on a GPU against 2 CPU cores: the train stage of the bench's cow and jar (GT cameras) and DTU scan24
+(photos only) workspaces on whatever device ``device: auto`` finds, then mesh, texture and held-out PSNR as in
+``bench/run.py``.
 
     python bench/gpu.py prepare DIR            # here: the training workspaces (images, masks, cameras, depth)
     python bench/gpu.py train DIR [RUN...]     # on the GPU machine: the train stage per run → DIR/gpu.json
-                                               # (RUN: SCENE:PRESET[:eager], eager: no CUDA graphs; default
-                                               #  cow:default cow:quality dtu:default;
+                                               # (RUN: SCENE:PRESET[:eager][:scaleN], eager: no CUDA graphs,
+                                               #  scaleN: --train.gpu-batch-scale N; default cow:default
+                                               #  cow:default:scale1 jar:default dtu:default dtu:default:scale1
+                                               #  cow:quality;
                                                #  the batch's captures: torus_noise:fast … as in bench/batch.py)
     python bench/gpu.py evaluate DIR           # here again: mesh + texture + held-out PSNR per trained model
     python bench/gpu.py profile DIR            # on the GPU machine: where a default training step's time goes
@@ -30,16 +33,19 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-SCENES = ("cow", "dtu")
+SYNTHETIC = ("cow", "jar")  # with their ground-truth cameras; the jar's fine print shows what fewer steps cost
+SCENES = (*SYNTHETIC, "dtu")
 BATCH = ("torus_noise", "torus_fine", "torus_thick", "torus_high")  # bench/batch.py's four captures (fast preset)
 
 
 def prepare(out: Path) -> None:
-    """The workspaces ``bench/run.py`` trains on: the cow with GT cameras, DTU without every 7th photo."""
+    """The workspaces ``bench/run.py`` trains on: the cow and the jar with GT cameras, DTU without every 7th
+    photo."""
     from bench.evaluate import RUNS, dtu_heldout, scene, subset_workspace
     from dvr.data import list_images
 
-    shutil.copytree(scene("cow", {}), out / "cow", ignore=shutil.ignore_patterns("gt", "depth"))
+    for name in SYNTHETIC:
+        shutil.copytree(scene(name, {}), out / name, ignore=shutil.ignore_patterns("gt", "depth"))
     full = RUNS / "dtu_all"
     if not (full / ".stages" / "depth.json").exists():
         sys.exit(f"{full}: missing; run `python bench/run.py` once (its DTU row) to build it")
@@ -63,25 +69,49 @@ def prepare_batch(out: Path) -> None:
 
 
 def train(out: Path, runs: list[str]) -> None:
-    """Train each ``scene:preset`` on the device ``auto`` picks; seconds into ``out/gpu.json``."""
+    """Train each ``scene:preset[:eager][:scaleN]`` on the device ``auto`` picks; seconds into ``out/gpu.json``."""
     import torch
 
-    from bench.evaluate import config, stages
+    from bench.evaluate import config
 
     rec = {"device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu", "runs": []}
-    for name, preset, *eager in (r.split(":") for r in runs):
+    for run in runs:
+        name, preset, *extras = run.split(":")
         if name not in SCENES + BATCH:
             sys.exit(f"{name}: not a scene of this bench ({', '.join(SCENES + BATCH)})")
         cfg = config(preset)
-        cfg.train.cuda_graphs = not eager  # SCENE:PRESET:eager: the surface finding without CUDA graphs
-        ws = out / "runs" / "_".join([name, preset, *eager])
+        cfg.train.cuda_graphs = "eager" not in extras  # :eager: the surface finding without CUDA graphs
+        for extra in extras:  # :scaleN: --train.gpu-batch-scale N
+            if extra.startswith("scale"):
+                cfg.train.gpu_batch_scale = int(extra[len("scale"):])
+        ws = out / "runs" / run_folder(run)
         shutil.rmtree(ws, ignore_errors=True)
         shutil.copytree(out / name, ws)
-        stages(("train",), ws, cfg)
-        secs = json.loads((ws / ".stages" / "train.json").read_text())["seconds"]
-        rec["runs"].append({"scene": name, "preset": preset, "cuda_graphs": not eager, "train_seconds": secs})
-        print(f"{name} {preset}{' eager' if eager else ''}: train {secs:.1f} s on {rec['device']}", flush=True)
+        train_stage(ws, cfg.train)
+        stamp = json.loads((ws / ".stages" / "train.json").read_text())
+        secs = stamp["seconds"]
+        rec["runs"].append({"run": run, "scene": name, "preset": preset, "cuda_graphs": cfg.train.cuda_graphs,
+                            "gpu_batch_scale": cfg.train.gpu_batch_scale, "steps": stamp.get("steps"),
+                            "batch_rays": stamp.get("batch_rays"), "train_seconds": secs})
+        print(f"{run}: train {secs:.1f} s on {rec['device']}", flush=True)
         (out / "gpu.json").write_text(json.dumps(rec, indent=1))  # after each run: a call cut short keeps its rows
+
+
+def train_stage(ws: Path, cfg) -> None:
+    """The train stage in ``ws`` with the train options ``cfg``, then its stamp: what ``python -m pipeline train``
+    runs, without :mod:`pipeline.stages`, whose other stages load pycolmap, which the GPU machine's image lacks."""
+    from pipeline.train.stage import run
+    from pipeline.workspace import Job, Workspace, config_hash
+
+    w = Workspace(ws)
+    job = Job(w, cfg, config_hash=config_hash(cfg), inputs=[w.images])
+    done = run(job)
+    w.mark_done("train", job.config_hash, done.seconds, done.details)
+
+
+def run_folder(run: str) -> str:
+    """The workspace folder of a run ``scene:preset[:eager][:scaleN]`` under ``DIR/runs``."""
+    return run.replace(":", "_")
 
 
 def evaluate(out: Path) -> None:
@@ -94,16 +124,15 @@ def evaluate(out: Path) -> None:
     for run in rec["runs"]:
         if run["scene"] in BATCH:  # their train seconds are what bench/batch.py --gpu-train takes
             continue
-        eager = [] if run.get("cuda_graphs", True) else ["eager"]
-        ws = out / "runs" / "_".join([run["scene"], run["preset"], *eager])
+        ws = out / "runs" / run_folder(run["run"])
         if not (ws / "model" / "final.pt").exists():
             print(f"{ws}: no trained model came back from the GPU machine; not evaluated")
             continue
         shutil.copytree(out / run["scene"], ws, dirs_exist_ok=True)  # only the model came back from the GPU
         stages(("mesh", "texture"), ws, config(run["preset"]))
         tm, tex = textured(ws)
-        if run["scene"] == "cow":
-            syn = RUNS / "scenes" / "cow"
+        if run["scene"] in SYNTHETIC:
+            syn = RUNS / "scenes" / run["scene"]
             cams = load_cameras(syn / "gt" / "heldout" / "cameras.npz")
             photos = sorted((syn / "gt" / "heldout" / "images").glob("*.png"))
             views = [(i, p, syn / "gt" / "heldout" / "masks" / p.name) for i, p in enumerate(photos)]
@@ -113,7 +142,7 @@ def evaluate(out: Path) -> None:
             views = [(i, photos[i], full / "masks" / f"{photos[i].stem}.png") for i in dtu_heldout(len(photos))]
         run["psnr"] = float(np.mean([render_psnr(tm, tex, cams.K[i], cams.R[i], cams.sfm_centers[i], _read_rgb(p),
                                                  _read_mask(m)) for i, p, m in views]))
-        print(f"{run['scene']} {run['preset']}: train {run['train_seconds']:.1f} s on {rec['device']}, "
+        print(f"{run['run']}: train {run['train_seconds']:.1f} s on {rec['device']}, "
               f"held-out PSNR {run['psnr']:.2f} dB")
     (out / "gpu.json").write_text(json.dumps(rec, indent=1))
 
@@ -175,7 +204,7 @@ def graph(out: Path, repeats: int = 50) -> None:
     t = Trainer(cfg, load_scene(out / "cow", dev), out / "graph")
     for i in range(200):
         t.train_step(i)
-    origins, dirs = t.sampler.sample(cfg.batch_rays)[:2]
+    origins, dirs = t.sampler.sample(t.cfg.batch_rays)[:2]  # as trained on this device
     n = t.n_steps_at(200)
     occ = t.model.occupancy
     fractions = sample_fractions(origins.shape[0], n, False, dev, origins.dtype)
@@ -206,8 +235,8 @@ def graph(out: Path, repeats: int = 50) -> None:
 
 
 def profile(out: Path, steps: int = 20) -> None:
-    """Time a default-preset training step on the cow and profile ``steps`` of them: host time, device time,
-    kernel launches and waits for the device per step."""
+    """Time default-preset training steps on the cow, with the device's own steps and with ``gpu_batch_scale`` 1,
+    and profile ``steps`` of each: host time, device time, kernel launches and waits for the device per step."""
     import time
 
     import torch
@@ -220,36 +249,40 @@ def profile(out: Path, steps: int = 20) -> None:
     from dvr.trainer import Trainer
     from pipeline.config import load_config
 
-    cfg = load_config(ROOT / "configs" / "default.yaml").train
-    cfg.progress = False
     dev = resolve_device("auto")
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
-    t = Trainer(cfg, load_scene(out / "cow", dev), out / "profile")
-    for i in range(100):  # warm-up
-        t.train_step(i)
-    sync()
-    t0 = time.perf_counter()
-    for i in range(100, 150):
-        t.train_step(i)
-    sync()
-    print(f"{(time.perf_counter() - t0) / 50 * 1e3:.1f} ms per step on {dev}")
-    with torch_profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-        for i in range(150, 150 + steps):
+    for scale in sorted({load_config(ROOT / "configs" / "default.yaml").train.gpu_batch_scale, 1}, reverse=True):
+        cfg = load_config(ROOT / "configs" / "default.yaml").train
+        cfg.progress, cfg.gpu_batch_scale = False, scale
+        t = Trainer(cfg, load_scene(out / "cow", dev), out / "profile")
+        start, timed = int(0.6 * t.cfg.iterations), max(10, t.cfg.iterations // 10)  # past the grid's upsampling
+        for i in range(start):  # warm-up
             t.train_step(i)
         sync()
-    ka = prof.key_averages()
-    print(ka.table(sort_by="self_cpu_time_total", row_limit=15, max_name_column_width=40))
-    busy = sum(e.self_device_time_total for e in ka if e.device_type == DeviceType.CUDA) / steps / 1e3  # kernels
-    launches = sum(e.count for e in ka if e.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC"))
-    waits = sum(e.count for e in ka if "Synchronize" in e.key)
-    print(f"per step: device busy {busy:.2f} ms, {launches / steps:.0f} kernel launches, {waits / steps:.0f} waits")
+        t0 = time.perf_counter()
+        for i in range(start, start + timed):
+            t.train_step(i)
+        sync()
+        print(f"gpu_batch_scale {scale}: {(time.perf_counter() - t0) / timed * 1e3:.1f} ms per step of "
+              f"{t.cfg.batch_rays} rays on {dev}")
+        with torch_profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            for i in range(start + timed, start + timed + steps):
+                t.train_step(i)
+            sync()
+        ka = prof.key_averages()
+        print(ka.table(sort_by="self_cpu_time_total", row_limit=15, max_name_column_width=40))
+        busy = sum(e.self_device_time_total for e in ka if e.device_type == DeviceType.CUDA) / steps / 1e3
+        launches = sum(e.count for e in ka if e.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC"))
+        waits = sum(e.count for e in ka if "Synchronize" in e.key)
+        print(f"per step: device busy {busy:.2f} ms, {launches / steps:.0f} kernel launches, {waits / steps:.0f} waits")
 
 
 if __name__ == "__main__":
     if len(sys.argv) < 3 or sys.argv[1] not in ("prepare", "train", "evaluate", "profile", "share", "graph"):
         sys.exit(__doc__)
     step, folder = sys.argv[1], Path(sys.argv[2])
-    default_runs = ["cow:default", "cow:quality", "dtu:default"]
+    default_runs = ["cow:default", "cow:default:scale1", "jar:default", "dtu:default", "dtu:default:scale1",
+                    "cow:quality"]
     {"prepare": lambda: prepare(folder), "train": lambda: train(folder, sys.argv[3:] or default_runs),
      "evaluate": lambda: evaluate(folder), "profile": lambda: profile(folder), "graph": lambda: graph(folder),
      "share": lambda: share(folder, [int(n) for n in sys.argv[3:]] or [1, 4, 8])}[step]()

@@ -82,6 +82,9 @@ class TrainConfig:
     """Jitter the marching samples while training."""
     cuda_graphs: bool = True
     """On a GPU, replay each step's surface finding as a CUDA graph (faster, same result); no effect on CPU."""
+    gpu_batch_scale: PositiveInt = 2
+    """On a GPU: this many times the rays and points a step, in as many times fewer steps, the learning rates × its
+    square root; 1: the CPU's steps."""
     lr_grid: float = 0.04
     """Adam learning rate of the grids and planes."""
     lr_mlp: float = 0.004

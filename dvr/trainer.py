@@ -7,7 +7,7 @@ import math
 import random
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -85,6 +85,22 @@ def _set_seed(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def device_schedule(cfg: TrainConfig, device: torch.device) -> TrainConfig:
+    """The steps ``cfg`` trains in on ``device``. On a GPU a step costs its kernel launches far more than its rays:
+    ``gpu_batch_scale`` times the rays, sparse-depth rays and carving points a step, in as many times fewer steps
+    (rounded up), the learning rates × √scale and the step counts between checkpoints, log lines and previews
+    divided alike. On the CPU, or with a scale of 1, ``cfg`` itself."""
+    k = cfg.gpu_batch_scale
+    if device.type == "cpu" or k == 1:
+        return cfg
+    lr = math.sqrt(k)
+    return replace(cfg, iterations=-(-cfg.iterations // k), batch_rays=cfg.batch_rays * k,
+                   depth_rays=cfg.depth_rays * k, carve_points=cfg.carve_points * k, lr_grid=cfg.lr_grid * lr,
+                   lr_mlp=cfg.lr_mlp * lr, lr_appearance=cfg.lr_appearance * lr,
+                   checkpoint_every=max(1, cfg.checkpoint_every // k), log_every=max(1, cfg.log_every // k),
+                   preview_every=cfg.preview_every // k)
+
+
 _CHECKPOINT_KEYS = ("step", "elapsed", "skipped", "field", "opt", "sched", "rng_torch", "rng_gen", "rng_np",
                     "rng_py")
 
@@ -152,7 +168,7 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, data: SceneData, out_dir: Path):
         t_setup = time.perf_counter()
-        self.cfg = cfg
+        self.cfg = cfg = device_schedule(cfg, data.masks.device)  # the steps this device trains in
         # once, a distance transform of every mask (reframing moves the cameras, not the masks)
         self.near = sure_background(cfg, data)
         self.data = data = training_frame(cfg, data, self.near)
@@ -229,7 +245,7 @@ class Trainer:
     def save_checkpoint(self) -> None:
         """Write everything an exact resume needs: step, weights, optimizer, schedule and every RNG state."""
         save_torch({
-            "step": self.step, "elapsed": self.elapsed, "skipped": self.skipped,
+            "step": self.step, "iterations": self.cfg.iterations, "elapsed": self.elapsed, "skipped": self.skipped,
             "field": self.model.state_dict(), "opt": self.opt.state_dict(), "sched": self.sched.state_dict(),
             "appearance": self.appearance.state_dict() if self.appearance is not None else None,
             "shading": self.shading.state_dict() if self.shading is not None else None,
@@ -266,6 +282,10 @@ class Trainer:
         if not self.ckpt_path.exists():
             return False
         ck = read_saved(self.ckpt_path, self.device, _CHECKPOINT_KEYS)  # before anything of it is loaded
+        steps = ck.get("iterations", self.cfg.iterations)
+        if steps != self.cfg.iterations:  # another device's steps (device_schedule): its schedule is not this run's
+            raise ValueError(f"{self.ckpt_path}: a checkpoint of {steps} steps, where this run trains "
+                             f"{self.cfg.iterations} (another device's schedule)")
         saved_res = self.model.grid_resolution_in(ck["field"])
         if saved_res is not None and saved_res != self.model.grid_resolution:
             self._resize_grid(saved_res)  # the checkpoint is past the upsampling
@@ -591,7 +611,7 @@ def train(cfg: TrainConfig, data: SceneData, out_dir: Path, stop_after: int | No
     t = Trainer(cfg, data, out_dir)
     t.try_resume()
     t.fit(stop_after)
-    if t.step >= cfg.iterations:
+    if t.step >= t.cfg.iterations:  # the device's steps (device_schedule)
         t.finish()
     return t
 

@@ -48,23 +48,33 @@ def run(job: Job) -> Done | None:
     framing = report_framing(cfg, data)
     t0 = time.perf_counter()
     trainer = Trainer(cfg, data, ws.model)
+    report_schedule(cfg, trainer.cfg, trainer.device)
     try:
         if trainer.try_resume():
-            print(f"train: resuming at step {trainer.step}/{cfg.iterations}")
-    except ValueError as exc:  # a checkpoint cut short (a full disk, a copy): it holds nothing to lose
+            print(f"train: resuming at step {trainer.step}/{trainer.cfg.iterations}")
+    except ValueError as exc:  # a checkpoint cut short (a full disk, a copy), or of another device's steps
         print(f"train: {exc}; starting afresh")
         trainer.ckpt_path.unlink()
         (ws.model / "log.jsonl").unlink(missing_ok=True)  # the log of the steps it stood for
     trainer.fit(job.stop_after)
-    if trainer.step < cfg.iterations:
+    if trainer.step < trainer.cfg.iterations:
         return None
     trainer.finish()
     print(f"train: {trainer.step} steps in {trainer.elapsed:.1f} s (setup {trainer.setup_seconds:.1f} s) → "
           f"{ws.model / 'final.pt'}")
     return Done({"wall": round(time.perf_counter() - t0, 3), "setup": round(trainer.setup_seconds, 3),
-                 "skipped": trainer.skipped, "device": trainer.device.type, "appearance": appearance,
+                 "skipped": trainer.skipped, "device": trainer.device.type,
+                 "steps": trainer.cfg.iterations, "batch_rays": trainer.cfg.batch_rays, "appearance": appearance,
                  "framing": framing},
                 seconds=trainer.elapsed)
+
+
+def report_schedule(asked: TrainConfig, steps: TrainConfig, device) -> None:
+    """Say so when the device trains in other steps than the options name (:func:`dvr.trainer.device_schedule`)."""
+    if steps.iterations != asked.iterations:
+        print(f"train: on {device.type}, {steps.iterations} steps of {steps.batch_rays} rays "
+              f"(--train.gpu-batch-scale {asked.gpu_batch_scale}; 1 trains {asked.iterations} steps of "
+              f"{asked.batch_rays})")
 
 
 def report_framing(cfg: TrainConfig, data) -> dict:

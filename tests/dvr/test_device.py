@@ -11,7 +11,7 @@ from dvr.extract import extract_mesh
 from dvr.fields import make_field
 from dvr.implicit import implicit_depth
 from dvr.march import HIT, find_surface
-from dvr.trainer import Trainer
+from dvr.trainer import Trainer, train
 from tests.dvr.test_hard_cases import tiny_cfg
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -72,8 +72,8 @@ def test_training_on_device_computes_the_cpu_losses(small_ws, tmp_path, device):
     terms = {}
     for dev in ("cpu", device.type):
         torch.manual_seed(0)
-        t = Trainer(tiny_cfg(iterations=4, jitter=False, device=dev), load_scene(small_ws, torch.device(dev)),
-                    tmp_path / dev)
+        t = Trainer(tiny_cfg(iterations=4, jitter=False, device=dev, gpu_batch_scale=1),  # the CPU's batch
+                    load_scene(small_ws, torch.device(dev)), tmp_path / dev)
         _, stats = t.losses(0)
         terms[dev] = {k: float(stats[k]) for k in ("hit_frac", "rgb", "depth", "psnr")}
         last = t.fit()
@@ -82,6 +82,23 @@ def test_training_on_device_computes_the_cpu_losses(small_ws, tmp_path, device):
     assert terms["cpu"]["hit_frac"] > 0 and terms["cpu"]["rgb"] > 0
     for k, v in terms["cpu"].items():
         assert abs(terms[device.type][k] - v) <= 1e-4 * max(1.0, abs(v)), k
+
+
+def test_a_gpu_trains_its_own_steps_and_says_so(small_ws, tmp_path, device, capsys):
+    """``train`` runs :func:`dvr.trainer.device_schedule`'s steps to the end and writes the model, its parameters
+    finite: on a GPU fewer steps of more rays, which the train stage names; on the CPU the options' own, without a
+    word."""
+    from pipeline.train.stage import report_schedule
+
+    cfg = tiny_cfg(iterations=8, checkpoint_every=4, device=device.type, gpu_batch_scale=4)
+    t = train(cfg, load_scene(small_ws, device), tmp_path)
+    report_schedule(cfg, t.cfg, t.device)
+    gpu = device.type != "cpu"
+    assert (t.cfg.iterations, t.cfg.batch_rays) == ((2, 1024) if gpu else (8, 256))
+    said = capsys.readouterr().out
+    assert f"train: on {device.type}, 2 steps of 1024 rays" in said if gpu else said == ""
+    assert t.step == t.cfg.iterations and (tmp_path / "final.pt").exists()
+    assert all(torch.isfinite(p).all() for p in t.model.parameters())
 
 
 def test_extract_mesh_on_device_matches_cpu(device):

@@ -1,6 +1,7 @@
 """Trainer: resume after a kill equals an uninterrupted run; log.jsonl; previews; losses are means."""
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ from dvr import losses as L
 from dvr.checkpoint import load_model
 from dvr.data import RaySampler, load_scene
 from dvr.hull import grid_points
-from dvr.trainer import Trainer, train
+from dvr.trainer import Trainer, device_schedule, train
 from tests.dvr.test_hard_cases import tiny_cfg
 
 
@@ -431,3 +432,42 @@ def test_hull_gate_px_lets_the_occupancy_term_reach_the_silhouettes(small_ws, tm
     assert gated(0.0, 0.0) > 0.05 and gated(0.0, 0.015) > 0.3
     assert gated(2.0, 0.0) == 0.0 and gated(2.0, 0.015) == 0.0
     assert gated(0.0, 0.3) > 0.8 and gated(2.0, 0.3) > 0.8
+
+
+def test_a_gpu_trains_fewer_larger_steps_and_the_cpu_the_options_own():
+    """device_schedule: on a GPU, gpu_batch_scale times the rays and points a step in as many times fewer steps
+    (rounded up), the learning rates × √scale, checkpoints, log lines and previews as many times fewer steps apart;
+    on the CPU, or with a scale of 1, the options themselves."""
+    cfg = tiny_cfg(iterations=1001, batch_rays=2048, depth_rays=256, carve_points=4096, lr_grid=0.04, lr_mlp=0.004,
+                   lr_appearance=0.01, checkpoint_every=250, log_every=2, preview_every=0, gpu_batch_scale=4)
+    assert device_schedule(cfg, torch.device("cpu")) is cfg
+    assert device_schedule(replace(cfg, gpu_batch_scale=1), torch.device("cuda")).iterations == 1001
+    gpu = device_schedule(cfg, torch.device("cuda"))
+    assert (gpu.iterations, gpu.batch_rays, gpu.depth_rays, gpu.carve_points) == (251, 8192, 1024, 16384)
+    assert (gpu.lr_grid, gpu.lr_mlp, gpu.lr_appearance) == pytest.approx((0.08, 0.008, 0.02))
+    assert (gpu.checkpoint_every, gpu.log_every, gpu.preview_every) == (62, 1, 0)
+    assert (cfg.iterations, cfg.batch_rays, cfg.lr_grid) == (1001, 2048, 0.04)  # the options are left as they were
+
+
+def test_a_checkpoint_of_other_steps_is_not_resumed(small_ws, tmp_path, capsys):
+    """A checkpoint written under another step count (another device's schedule, :func:`device_schedule`) is a
+    ValueError naming it, with the trainer untouched; the train stage then starts afresh and says so."""
+    data = load_scene(small_ws, torch.device("cpu"))
+    train(tiny_cfg(iterations=8, checkpoint_every=4), data, tmp_path, stop_after=4)
+    t = Trainer(tiny_cfg(iterations=2, checkpoint_every=4), data, tmp_path)
+    with pytest.raises(ValueError, match=r"checkpoint.pt: a checkpoint of 8 steps, where this run trains 2 "
+                                         r"\(another device's schedule\)"):
+        t.try_resume()
+    assert t.step == 0
+
+
+def test_the_train_stage_says_when_the_device_trains_other_steps(capsys):
+    """report_schedule: a line naming the steps the GPU trains and the option that sets them; nothing on the CPU."""
+    from pipeline.train.stage import report_schedule
+
+    cfg = tiny_cfg(iterations=1000, batch_rays=2048, gpu_batch_scale=4)
+    report_schedule(cfg, device_schedule(cfg, torch.device("cpu")), torch.device("cpu"))
+    assert capsys.readouterr().out == ""
+    report_schedule(cfg, device_schedule(cfg, torch.device("cuda")), torch.device("cuda"))
+    assert capsys.readouterr().out == ("train: on cuda, 250 steps of 8192 rays (--train.gpu-batch-scale 4; 1 trains "
+                                       "1000 steps of 2048)\n")
