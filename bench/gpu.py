@@ -10,7 +10,8 @@
                                                #  cow:quality;
                                                #  the batch's captures: torus_noise:fast … as in bench/batch.py)
     python bench/gpu.py evaluate DIR           # here again: mesh + texture + held-out PSNR per trained model
-    python bench/gpu.py profile DIR            # on the GPU machine: where a default training step's time goes
+    python bench/gpu.py profile DIR [SCALE...] # on the GPU machine: where a default training step's time goes, at
+                                               # each --train.gpu-batch-scale (default: the preset's and 1)
     python bench/gpu.py share DIR N...         # on the GPU machine: the batch's captures trained N at a time on the
                                                # one GPU, one torch thread each (Ray's --batch.train-gpus 1/N)
     python bench/gpu.py graph DIR              # on the GPU machine: a step's surface finding eagerly, with fixed
@@ -234,10 +235,12 @@ def graph(out: Path, repeats: int = 50) -> None:
                                                 "captures": t.find_surface.captures}, indent=1))
 
 
-def profile(out: Path, steps: int = 20) -> None:
-    """Time default-preset training steps on the cow, with the device's own steps and with ``gpu_batch_scale`` 1,
-    and profile ``steps`` of each: host time, device time, kernel launches and waits for the device per step."""
+def profile(out: Path, scales: list[int], steps: int = 20) -> None:
+    """Time default-preset training steps on the cow at each ``gpu_batch_scale`` of ``scales`` (none: the preset's
+    and 1), and profile ``steps`` of each: host time, device time, kernel launches and waits for the device per
+    step."""
     import time
+    from dataclasses import replace
 
     import torch
     from torch.autograd import DeviceType
@@ -251,9 +254,9 @@ def profile(out: Path, steps: int = 20) -> None:
 
     dev = resolve_device("auto")
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
-    for scale in sorted({load_config(ROOT / "configs" / "default.yaml").train.gpu_batch_scale, 1}, reverse=True):
-        cfg = load_config(ROOT / "configs" / "default.yaml").train
-        cfg.progress, cfg.gpu_batch_scale = False, scale
+    default = load_config(ROOT / "configs" / "default.yaml").train
+    for scale in scales or sorted({default.gpu_batch_scale, 1}, reverse=True):
+        cfg = replace(default, progress=False, gpu_batch_scale=scale)
         t = Trainer(cfg, load_scene(out / "cow", dev), out / "profile")
         start, timed = int(0.6 * t.cfg.iterations), max(10, t.cfg.iterations // 10)  # past the grid's upsampling
         for i in range(start):  # warm-up
@@ -284,5 +287,6 @@ if __name__ == "__main__":
     default_runs = ["cow:default", "cow:default:scale1", "jar:default", "dtu:default", "dtu:default:scale1",
                     "cow:quality"]
     {"prepare": lambda: prepare(folder), "train": lambda: train(folder, sys.argv[3:] or default_runs),
-     "evaluate": lambda: evaluate(folder), "profile": lambda: profile(folder), "graph": lambda: graph(folder),
+     "evaluate": lambda: evaluate(folder), "profile": lambda: profile(folder, [int(k) for k in sys.argv[3:]]),
+     "graph": lambda: graph(folder),
      "share": lambda: share(folder, [int(n) for n in sys.argv[3:]] or [1, 4, 8])}[step]()

@@ -449,9 +449,9 @@ def test_a_gpu_trains_fewer_larger_steps_and_the_cpu_the_options_own():
     assert (cfg.iterations, cfg.batch_rays, cfg.lr_grid) == (1001, 2048, 0.04)  # the options are left as they were
 
 
-def test_a_checkpoint_of_other_steps_is_not_resumed(small_ws, tmp_path, capsys):
+def test_a_checkpoint_of_other_steps_is_not_resumed(small_ws, tmp_path):
     """A checkpoint written under another step count (another device's schedule, :func:`device_schedule`) is a
-    ValueError naming it, with the trainer untouched; the train stage then starts afresh and says so."""
+    ValueError naming it, with the trainer untouched (the train stage then starts afresh, as for a damaged one)."""
     data = load_scene(small_ws, torch.device("cpu"))
     train(tiny_cfg(iterations=8, checkpoint_every=4), data, tmp_path, stop_after=4)
     t = Trainer(tiny_cfg(iterations=2, checkpoint_every=4), data, tmp_path)
