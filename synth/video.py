@@ -22,8 +22,8 @@ import cv2
 import numpy as np
 
 OPENCV_CODECS = {"mp4v", "MJPG"}
-FFMPEG_CODECS = {
-    "h264": ["-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", "18"],
+FFMPEG_CODECS = {  # x264 in plain C on one thread: its SIMD paths and thread count change the frames it encodes
+    "h264": ["-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", "18", "-threads", "1", "-x264-params", "asm=0"],
     "hevc": ["-c:v", "libx265", "-pix_fmt", "yuv420p10le", "-tag:v", "hvc1", "-crf", "20",
              "-x265-params", "log-level=error"],
 }
@@ -85,7 +85,8 @@ def _write_ffmpeg(frames: list[np.ndarray], out: Path, fps: float, encode: list[
     exe = imageio_ffmpeg.get_ffmpeg_exe()
     h, w = frames[0].shape[:2]
     plain = out.with_name(out.stem + ".untagged" + out.suffix)
-    quiet = [exe, "-hide_banner", "-loglevel", "error", "-y"]
+    # bit-exact colour conversion: the same clip on every machine (with x264's options above)
+    quiet = [exe, "-hide_banner", "-loglevel", "error", "-y", "-sws_flags", "accurate_rnd+bitexact"]
     subprocess.run([*quiet, "-f", "rawvideo", "-pix_fmt", "bgr24", "-s", f"{w}x{h}", "-r", str(fps), "-i", "-",
                     *encode, str(plain)], input=b"".join(f.tobytes() for f in frames), check=True)
     # the tag in a second pass that copies the stream: set on the raw input, FFmpeg would turn the frames instead
