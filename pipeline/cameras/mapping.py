@@ -360,13 +360,12 @@ def _rejoined(best: _Kept, doubtful: list[tuple[str, str, int, int]], group: lis
                        group, cut)
     again = _mapped_without(best, cut, REJOINED, work, inp, groups, cfg, names, budget, tried)
     left = None if again is None else unexplained_pairs(again.model, best.database)
-    if again is None or again.registered < best.registered or \
-            unexplained_matches(left) * 2 >= unexplained_matches(doubtful):
-        why = "no model" if again is None else \
-            f"{again.registered} photos, {unexplained_matches(left)} matches of pairs unexplained"
+    n_left = None if left is None else unexplained_matches(left)
+    if again is None or again.registered < best.registered or n_left * 2 >= unexplained_matches(doubtful):
+        why = "no model" if again is None else f"{again.registered} photos, {n_left} matches of pairs unexplained"
         print(f"cameras: the first model is kept ({why} mapped again)")
         return best, doubtful
-    print(f"cameras: the model mapped again is kept: {unexplained_matches(left)} matches of pairs unexplained")
+    print(f"cameras: the model mapped again is kept: {n_left} matches of pairs unexplained")
     print("warning: the cameras stage mapped a group of photos again that its first model had posed at the wrong "
           "side of the object (the same pattern on two sides); part of them can still be off: look at the mesh, and "
           "if it is wrong, add photos between its sides", file=sys.stderr)
