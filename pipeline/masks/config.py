@@ -64,6 +64,6 @@ class MasksConfig:
     footprint_union: bool = True
     """Hard background only beyond both the points' footprint and the hull's; off: beyond the points' alone."""
     saliency: bool = False
-    """Start GrabCut from a salient-object model's guess where the geometry is undecided; the views' vote decides."""
+    """Let a salient-object model vote in the masks (shiny or thin parts over a busy floor); the views' vote decides."""
     speck_fraction: float = 0.001
     """Automatic masks: fill holes and drop islands smaller than this fraction of the image."""

@@ -111,6 +111,15 @@ def vote_prior(lab: np.ndarray, sal: np.ndarray) -> np.ndarray:
     return lab
 
 
+def salient_pixels(sal: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """One view's pixels that its salient-object probability ``sal`` (h, w) calls object (:data:`SALIENT`) and its
+    geometric ``seed`` labels do not hold as certain background: what the view's saliency votes for in the masks'
+    hull (:func:`pipeline.masks.stage.carved_hull`) and, inside the hull's silhouette, adds to its mask. bool (h, w)."""
+    if sal.shape != seed.shape:
+        raise ValueError(f"salient_pixels: saliency {sal.shape} and seed labels {seed.shape} differ in shape")
+    return (sal >= SALIENT) & (seed != cv2.GC_BGD)
+
+
 def saliency_maps(imgs: list[np.ndarray], path: Path | None = None) -> list[np.ndarray]:
     """:func:`saliency` of every BGR image (the model read once)."""
     net = load_model(path)

@@ -1,7 +1,9 @@
 """Stage ``masks``: one binary mask per image (``masks/<stem>.png``), overlays and per-image confidence.
 
 User masks (``--masks-dir DIR``) are matched by stem, validated (readable, binary-ish) and transformed like their
-images (EXIF orientation applied, resized to the image size). Automatic masks use no learned model:
+images (EXIF orientation applied, resized to the image size). Automatic masks use no learned model unless
+``saliency`` is on (:mod:`pipeline.masks.saliency`: each view's salient pixels vote beside its mask,
+:func:`with_salient`):
 
 1. seeds from geometry: sparse SfM points inside the object's unit sphere are object, points the view
    observes far outside it are background (visibility from the COLMAP tracks in ``sfm/``), and everything
@@ -45,7 +47,7 @@ from dvr.data import list_images, pad_stack, read_mask
 from dvr.hull import grid_points, hull_logits, mask_lookup, near_object
 from pipeline.errors import StageError
 from pipeline.masks.config import MasksConfig
-from pipeline.masks.saliency import evidence, first_labels, vote_prior
+from pipeline.masks.saliency import evidence, first_labels, salient_pixels, vote_prior
 from pipeline.masks.stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
 from pipeline.messages import names_or_count
 from pipeline.readers import read_stage_model
@@ -435,7 +437,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     first_hull = None  # built once when the footprint and the first vote both need it
     # the footprint of the first masks' hull: alone (too few points), or united with the points' prism
     if (used is False or unite) and cfg.footprint_hull_height > 0:
-        first_hull = carved_hull(first, cams, cfg, keep)
+        first_hull = carved_hull(with_salient(first, seeds, sal), cams, cfg, keep)
         from_hull = hull_footprint(first, cams, cfg, first_hull)
         if unite:
             footprint, used = united_footprint(footprint, from_hull), "sparse points and masks' hull"
@@ -476,6 +478,22 @@ def evened_out(ws: Workspace, names: list[str], imgs: list[np.ndarray]) -> list[
     return [even_out(img, g) for img, g in zip(imgs, gains)]
 
 
+def with_salient(masks: list[np.ndarray], seeds: list[np.ndarray], sal: list[np.ndarray] | None,
+                 within: list[np.ndarray] | None = None) -> list[np.ndarray]:
+    """Each view's mask joined by its salient pixels (:func:`pipeline.masks.saliency.salient_pixels` of its saliency
+    map in ``sal`` and its ``seeds``), only those ``within`` (one bool array per view) when given; the masks as they
+    are without ``sal``. As the hull's voters, a point is carved only where views see it outside both their mask
+    and their saliency: a thin part that most views' saliency sees stays though two or three views' GrabCut lost
+    it (a shiny nozzle over a carpet that mirrors in it)."""
+    if sal is None:
+        return masks
+    joined = []
+    for i, m in enumerate(masks):
+        add = salient_pixels(sal[i], seeds[i])
+        joined.append(m | (add if within is None else add & within[i]))
+    return joined
+
+
 def vote_labels(seed: np.ndarray, sil: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """GrabCut labels of one view in a vote round: outside the hull's silhouette ``sil`` (widened by ``kernel``)
     background — an object seed there is outvoted by the views that carved that space; in the widened band
@@ -500,18 +518,20 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
     :func:`kept_points`) is an upper bound in every view
     (:func:`vote_labels`) and GrabCut refines inside it, ``rounds`` times or until a round changes fewer than
     ``settle`` of the object's pixels; with ``region`` (a bool array per view) only those pixels change, and a round
-    that changes more than the one before is undone and ends them (it eats into the object). Returns
-    (masks, the last round's hull silhouettes, the fraction each round changed)."""
+    that changes more than the one before is undone and ends them (it eats into the object). With ``sal`` (each
+    view's saliency map) a view's salient pixels vote in the hull and, inside its silhouette, join its mask
+    (:func:`with_salient`). Returns (masks, the last round's hull silhouettes, the fraction each round changed)."""
     kernel = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
     current, sil, changed = start, [], []
     for rnd in range(rounds):
-        hull = first_hull if rnd == 0 and first_hull is not None else carved_hull(current, cams, cfg, keep)
+        hull = first_hull if rnd == 0 and first_hull is not None else carved_hull(with_salient(current, seeds, sal),
+                                                                                  cams, cfg, keep)
         sil = hull_silhouettes(current, cams, hull)
         labs = [vote_labels(seeds[i], sil[i], kernel) for i in range(len(imgs))]
         if sal is not None:  # a probable start inside the hull's bound, never past it
             labs = [vote_prior(lab, s) for lab, s in zip(labs, sal)]
         if region is None:
-            new = grabcut_all(imgs, labs, cfg.round_iters, cfg.grabcut_margin)
+            new = with_salient(grabcut_all(imgs, labs, cfg.round_iters, cfg.grabcut_margin), seeds, sal, sil)
         else:  # GrabCut on the box of the region's undecided pixels, the rest of that box fixed as it is
             labs = [np.where(r, lab, np.where(c, cv2.GC_FGD, cv2.GC_BGD)).astype(np.uint8)
                     for r, lab, c in zip(region, labs, current)]
@@ -519,6 +539,8 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
             todo = [i for i, b in enumerate(boxes) if b is not None]
             cut = grabcut_all([imgs[i] for i in todo], [labs[i] for i in todo], cfg.round_iters,
                               boxes=[boxes[i] for i in todo])
+            if sal is not None:
+                cut = with_salient(cut, [seeds[i] for i in todo], [sal[i] for i in todo], [sil[i] for i in todo])
             new = list(current)
             for i, m in zip(todo, cut):
                 new[i] = np.where(region[i], m, current[i])

@@ -145,3 +145,61 @@ def test_a_view_whose_saliency_contradicts_the_hull_loses(scene):
     assert (masks[0] & patch).sum() < 0.05 * patch.sum()
     iou = [(m & g).sum() / (m | g).sum() for m, g in zip(masks, gt)]
     assert min(iou) > 0.9
+
+
+def test_salient_pixels_leave_the_hard_background():
+    sal = np.array([[0.9, 0.9, 0.2, 0.5]], np.float32)
+    seed = np.array([[cv2.GC_PR_BGD, cv2.GC_BGD, cv2.GC_FGD, cv2.GC_PR_FGD]], np.uint8)
+    assert S.salient_pixels(sal, seed).tolist() == [[True, False, False, True]]
+    with pytest.raises(ValueError, match="differ in shape"):
+        S.salient_pixels(sal, seed.T)
+
+
+def test_a_part_two_masks_lost_stays_where_their_saliency_sees_it():
+    """Two views' masks lose the base of a box (GrabCut on a shiny part over a carpet it mirrors): the hull of the
+    masks carves it from every view. Where those views' saliency sees the base, they do not vote it out, and the hull
+    holds it; where their saliency loses it too, it is carved as before: saliency votes, it does not overrule."""
+    from pipeline.masks import stage
+    from tests.pipeline.masks.test_hull_keep import RES, _base_points, _logits_at, _masks_missing_the_base
+
+    cams, masks = _masks_missing_the_base()
+    true = _masks_missing_the_base(views=())[1]
+    seeds = [np.full(m.shape, cv2.GC_PR_BGD, np.uint8) for m in masks]
+    cfg = Config().masks
+    cfg.hull_res, cfg.settle_height = RES, 0.0
+    base = _base_points()
+    carved = stage.carved_hull(stage.with_salient(masks, seeds, None), cams, cfg)
+    assert (_logits_at(carved, base) < 0).mean() > 0.5
+    seen = [m.astype(np.float32) for m in true]
+    held = stage.carved_hull(stage.with_salient(masks, seeds, seen), cams, cfg)
+    assert (_logits_at(held, base) > 0).all()
+    lost = [m.astype(np.float32) for m in masks]  # the two views' saliency misses the base as their masks do
+    assert (_logits_at(stage.carved_hull(stage.with_salient(masks, seeds, lost), cams, cfg), base) < 0).mean() > 0.5
+    hard = [np.where(m, cv2.GC_BGD, s).astype(np.uint8) for m, s in zip(true, seeds)]  # certain background wins
+    assert not any(a.any() for a in stage.with_salient([np.zeros_like(m) for m in masks], hard, seen))
+
+
+def test_inside_the_hull_the_salient_pixels_join_the_masks(monkeypatch):
+    """The vote rounds' GrabCut loses the bottom rows of a square in every view; the views' saliency holds them, so
+    the masks keep them inside the hull's silhouette, in the floor rounds too, and take no salient pixel beyond it."""
+    from pipeline.masks import stage
+    from pipeline.masks.config import MasksConfig
+
+    size, square = 48, np.zeros((48, 48), bool)
+    square[8:40, 8:40] = True
+    cut = square.copy()
+    cut[30:] = False
+    monkeypatch.setattr(stage, "grabcut_all", lambda imgs, labels, *a, **k: [cut.copy() for _ in imgs])
+    monkeypatch.setattr(stage, "carved_hull", lambda *a, **k: None)
+    monkeypatch.setattr(stage, "hull_silhouettes", lambda masks, *a, **k: [square.copy() for _ in masks])
+    imgs = [np.zeros((size, size, 3), np.uint8)] * 3
+    seeds = [np.full((size, size), cv2.GC_PR_BGD, np.uint8)] * 3
+    sal = [np.ones((size, size), np.float32)] * 3  # salient everywhere: only the silhouette's share may join
+    without, _, _ = stage.vote(imgs, seeds, [square] * 3, None, MasksConfig(), 1)
+    assert all(np.array_equal(m, cut) for m in without)
+    kept, _, _ = stage.vote(imgs, seeds, [square] * 3, None, MasksConfig(), 1, sal=sal)
+    assert all(np.array_equal(m, square) for m in kept)
+    low = np.zeros((size, size), bool)
+    low[36:] = True
+    floor, _, _ = stage.vote(imgs, seeds, [square] * 3, None, MasksConfig(), 1, 0.0, [low] * 3, sal=sal)
+    assert all(np.array_equal(m, square) for m in floor)
