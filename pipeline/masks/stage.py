@@ -437,7 +437,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     first_hull = None  # built once when the footprint and the first vote both need it
     # the footprint of the first masks' hull: alone (too few points), or united with the points' prism
     if (used is False or unite) and cfg.footprint_hull_height > 0:
-        first_hull = carved_hull(with_salient(first, seeds, sal), cams, cfg, keep)
+        first_hull = carved_hull(with_salient(first, salient_views(sal, seeds)), cams, cfg, keep)
         from_hull = hull_footprint(first, cams, cfg, first_hull)
         if unite:
             footprint, used = united_footprint(footprint, from_hull), "sparse points and masks' hull"
@@ -478,20 +478,23 @@ def evened_out(ws: Workspace, names: list[str], imgs: list[np.ndarray]) -> list[
     return [even_out(img, g) for img, g in zip(imgs, gains)]
 
 
-def with_salient(masks: list[np.ndarray], seeds: list[np.ndarray], sal: list[np.ndarray] | None,
+def salient_views(sal: list[np.ndarray] | None, seeds: list[np.ndarray]) -> list[np.ndarray] | None:
+    """Each view's salient pixels (:func:`pipeline.masks.saliency.salient_pixels` of its saliency map in ``sal`` and
+    its ``seeds``); None without ``sal``."""
+    return None if sal is None else [salient_pixels(s, seed) for s, seed in zip(sal, seeds)]
+
+
+def with_salient(masks: list[np.ndarray], salient: list[np.ndarray] | None,
                  within: list[np.ndarray] | None = None) -> list[np.ndarray]:
-    """Each view's mask joined by its salient pixels (:func:`pipeline.masks.saliency.salient_pixels` of its saliency
-    map in ``sal`` and its ``seeds``), only those ``within`` (one bool array per view) when given; the masks as they
-    are without ``sal``. As the hull's voters, a point is carved only where views see it outside both their mask
-    and their saliency: a thin part that most views' saliency sees stays though two or three views' GrabCut lost
-    it (a shiny nozzle over a carpet that mirrors in it)."""
-    if sal is None:
+    """Each view's mask joined by its ``salient`` pixels (:func:`salient_views`), only those ``within`` (one bool
+    array per view) when given; the masks as they are without ``salient``. As the hull's voters, a point is carved
+    only where views see it outside both their mask and their saliency: a thin part that most views' saliency sees
+    stays though two or three views' GrabCut lost it (a shiny nozzle over a carpet that mirrors in it)."""
+    if salient is None:
         return masks
-    joined = []
-    for i, m in enumerate(masks):
-        add = salient_pixels(sal[i], seeds[i])
-        joined.append(m | (add if within is None else add & within[i]))
-    return joined
+    if within is None:
+        return [m | s for m, s in zip(masks, salient)]
+    return [m | (s & w) for m, s, w in zip(masks, salient, within)]
 
 
 def vote_labels(seed: np.ndarray, sil: np.ndarray, kernel: np.ndarray) -> np.ndarray:
@@ -522,16 +525,17 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
     view's saliency map) a view's salient pixels vote in the hull and, inside its silhouette, join its mask
     (:func:`with_salient`). Returns (masks, the last round's hull silhouettes, the fraction each round changed)."""
     kernel = np.ones((2 * cfg.band_px + 1,) * 2, np.uint8)
+    salient = salient_views(sal, seeds)  # the seeds do not change in the rounds
     current, sil, changed = start, [], []
     for rnd in range(rounds):
-        hull = first_hull if rnd == 0 and first_hull is not None else carved_hull(with_salient(current, seeds, sal),
+        hull = first_hull if rnd == 0 and first_hull is not None else carved_hull(with_salient(current, salient),
                                                                                   cams, cfg, keep)
         sil = hull_silhouettes(current, cams, hull)
         labs = [vote_labels(seeds[i], sil[i], kernel) for i in range(len(imgs))]
         if sal is not None:  # a probable start inside the hull's bound, never past it
             labs = [vote_prior(lab, s) for lab, s in zip(labs, sal)]
         if region is None:
-            new = with_salient(grabcut_all(imgs, labs, cfg.round_iters, cfg.grabcut_margin), seeds, sal, sil)
+            new = with_salient(grabcut_all(imgs, labs, cfg.round_iters, cfg.grabcut_margin), salient, sil)
         else:  # GrabCut on the box of the region's undecided pixels, the rest of that box fixed as it is
             labs = [np.where(r, lab, np.where(c, cv2.GC_FGD, cv2.GC_BGD)).astype(np.uint8)
                     for r, lab, c in zip(region, labs, current)]
@@ -539,8 +543,8 @@ def vote(imgs: list[np.ndarray], seeds: list[np.ndarray], start: list[np.ndarray
             todo = [i for i, b in enumerate(boxes) if b is not None]
             cut = grabcut_all([imgs[i] for i in todo], [labs[i] for i in todo], cfg.round_iters,
                               boxes=[boxes[i] for i in todo])
-            if sal is not None:
-                cut = with_salient(cut, [seeds[i] for i in todo], [sal[i] for i in todo], [sil[i] for i in todo])
+            if salient is not None:
+                cut = with_salient(cut, [salient[i] for i in todo], [sil[i] for i in todo])
             new = list(current)
             for i, m in zip(todo, cut):
                 new[i] = np.where(region[i], m, current[i])

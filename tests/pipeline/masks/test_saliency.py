@@ -168,15 +168,17 @@ def test_a_part_two_masks_lost_stays_where_their_saliency_sees_it():
     cfg = Config().masks
     cfg.hull_res, cfg.settle_height = RES, 0.0
     base = _base_points()
-    carved = stage.carved_hull(stage.with_salient(masks, seeds, None), cams, cfg)
+    carved = stage.carved_hull(stage.with_salient(masks, stage.salient_views(None, seeds)), cams, cfg)
     assert (_logits_at(carved, base) < 0).mean() > 0.5
     seen = [m.astype(np.float32) for m in true]
-    held = stage.carved_hull(stage.with_salient(masks, seeds, seen), cams, cfg)
+    held = stage.carved_hull(stage.with_salient(masks, stage.salient_views(seen, seeds)), cams, cfg)
     assert (_logits_at(held, base) > 0).all()
     lost = [m.astype(np.float32) for m in masks]  # the two views' saliency misses the base as their masks do
-    assert (_logits_at(stage.carved_hull(stage.with_salient(masks, seeds, lost), cams, cfg), base) < 0).mean() > 0.5
+    still = stage.carved_hull(stage.with_salient(masks, stage.salient_views(lost, seeds)), cams, cfg)
+    assert (_logits_at(still, base) < 0).mean() > 0.5
     hard = [np.where(m, cv2.GC_BGD, s).astype(np.uint8) for m, s in zip(true, seeds)]  # certain background wins
-    assert not any(a.any() for a in stage.with_salient([np.zeros_like(m) for m in masks], hard, seen))
+    empty = [np.zeros_like(m) for m in masks]
+    assert not any(a.any() for a in stage.with_salient(empty, stage.salient_views(seen, hard)))
 
 
 def test_inside_the_hull_the_salient_pixels_join_the_masks(monkeypatch):
