@@ -18,6 +18,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.ndimage import binary_fill_holes
 
 from dvr.atomic import write_bytes
 from pipeline.errors import StageError
@@ -33,6 +34,14 @@ MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 STD = np.array([0.229, 0.224, 0.225], np.float32)
 SALIENT = 0.5
 """Salient-object probability from which a pixel starts GrabCut on the object's side."""
+PROBES = 8
+"""Photos, spread evenly in name order, whose salient-object maps check the geometry's masks
+(:func:`pipeline.masks.stage.lost_to_saliency`)."""
+
+
+def model_installed() -> bool:
+    """Whether the model file is where ``make setup`` puts it (:data:`MODEL_PATH`)."""
+    return MODEL_PATH.is_file()
 
 
 def missing_model_message(path: Path | None = None) -> str:
@@ -118,6 +127,23 @@ def salient_pixels(sal: np.ndarray, seed: np.ndarray) -> np.ndarray:
     if sal.shape != seed.shape:
         raise ValueError(f"salient_pixels: saliency {sal.shape} and seed labels {seed.shape} differ in shape")
     return (sal >= SALIENT) & (seed != cv2.GC_BGD)
+
+
+def beyond_share(sal: np.ndarray, mask: np.ndarray, region: np.ndarray) -> float:
+    """The share of ``mask``'s area (bool (h, w)) that the salient pixels of ``sal`` (:data:`SALIENT`) inside
+    ``region`` (bool (h, w): where the object can be) add beyond its outline: what of the object, by the
+    salient-object model, the mask loses. Its holes do not count: a torus's hole or a handle's, which the model
+    fills, is a gap the mask is right to keep."""
+    if not sal.shape == mask.shape == region.shape:
+        raise ValueError(f"beyond_share: saliency {sal.shape}, mask {mask.shape} and region {region.shape} differ "
+                         "in shape")
+    outline = binary_fill_holes(mask)
+    return float(((sal >= SALIENT) & region & ~outline).sum() / max(int(mask.sum()), 1))
+
+
+def probe_views(n: int, k: int = PROBES) -> list[int]:
+    """``k`` of ``n`` views' indices spread evenly in their order (all of them when ``n <= k``)."""
+    return sorted(set(np.linspace(0, n - 1, min(n, k)).round().astype(int).tolist())) if n else []
 
 
 def saliency_maps(imgs: list[np.ndarray], path: Path | None = None) -> list[np.ndarray]:

@@ -47,7 +47,18 @@ from dvr.data import list_images, pad_stack, read_mask
 from dvr.hull import grid_points, hull_logits, mask_lookup, near_object
 from pipeline.errors import StageError
 from pipeline.masks.config import MasksConfig
-from pipeline.masks.saliency import evidence, first_labels, salient_pixels, vote_prior
+from pipeline.masks.saliency import (
+    SALIENT,
+    beyond_share,
+    evidence,
+    first_labels,
+    missing_model_message,
+    model_installed,
+    probe_views,
+    saliency_maps,
+    salient_pixels,
+    vote_prior,
+)
 from pipeline.masks.stereo import BACKGROUND, BACKGROUND_RADIUS, OBJECT, stereo_seed_labels
 from pipeline.messages import names_or_count
 from pipeline.readers import read_stage_model
@@ -607,6 +618,30 @@ def write_overlays(ws: Workspace, names: list[str], imgs: list[np.ndarray], cams
         write_image(out / f"{n}.jpg", ov, [cv2.IMWRITE_JPEG_QUALITY, 90])
 
 
+def lost_to_saliency(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> float | None:
+    """How much of the object the geometry's masks (masks/) lose by the salient-object model: in the visual hull of
+    :data:`~pipeline.masks.saliency.PROBES` photos' masks joined by their salient pixels, the part the views agree
+    on, beyond the masks' outlines, as a share of their area (:func:`~pipeline.masks.saliency.beyond_share`) in three
+    of four photos (a shiny nozzle over a carpet it mirrors). A printed board that some photos' saliency takes, or
+    the floor between a stool's legs seen from one side, is carved by the photos that see it empty. Said on a line
+    with what the stage does (more than ``cfg.saliency_check``: the masks again with the model's vote); None
+    without the model file (a warning)."""
+    if not model_installed():
+        print(f"masks: warning: {missing_model_message()}; the masks are not checked against it", file=sys.stderr)
+        return None
+    probes = probe_views(len(names))
+    cams = load_cameras(ws.cameras, n_views=len(names)).subset(probes)
+    masks = [read_mask(ws.masks / f"{names[i]}.png") > 0.5 for i in probes]
+    sal = saliency_maps([imgs[i] for i in probes])
+    salient = [(s >= SALIENT) & sphere_region(cams, k, *m.shape) for k, (s, m) in enumerate(zip(sal, masks))]
+    sil = hull_silhouettes(masks, cams, carved_hull(with_salient(masks, salient), cams, cfg))
+    share = float(np.percentile([beyond_share(s, m, w) for s, m, w in zip(sal, masks, sil)], 25))
+    print(f"masks: the salient-object model sees {share:.1%} of the masks' area beyond them in three of four of "
+          f"{len(probes)} photos (masks.saliency-check {cfg.saliency_check:.0%})"
+          + (": the masks again with its vote (masks.saliency)" if share > cfg.saliency_check else ""))
+    return share
+
+
 def run(job: Job) -> Done:
     """Stage ``masks`` (called by :func:`pipeline.stages.run_stage`): the user's masks (``job.sources.masks_dir``)
     checked and resized, or automatic ones → masks/*.png, masks/overlays/, masks/confidence.json."""
@@ -620,7 +655,7 @@ def run(job: Job) -> Done:
     if ws.masks.exists():
         shutil.rmtree(ws.masks)
     ws.masks.mkdir(parents=True)
-    footprint, sal = None, None
+    footprint, sal, lost = None, None, None
     if user is not None:
         for n, m in user.items():
             write_image(ws.masks / f"{n}.png", m.astype(np.uint8) * 255)
@@ -628,6 +663,11 @@ def run(job: Job) -> Done:
     else:
         sal = evidence(imgs) if cfg.saliency else None
         conf, footprint, rounds = auto_masks(ws, names, imgs, cfg, sal)
+        if sal is None and cfg.saliency_check > 0:
+            lost = lost_to_saliency(ws, names, imgs, cfg)
+        if lost is not None and lost > cfg.saliency_check:
+            sal = evidence(imgs)
+            conf, footprint, rounds = auto_masks(ws, names, imgs, cfg, sal)
     write_overlays(ws, names, imgs, load_cameras(ws.cameras, n_views=len(names)))
     write_json(ws.masks / "confidence.json", conf, indent=1)
     low = [n for n, c in conf.items() if c < 0.8]
@@ -636,6 +676,6 @@ def run(job: Job) -> Done:
               f"{ws.masks / 'overlays'}", file=sys.stderr)
     print(f"masks: {len(names)} masks, mean confidence {np.mean(list(conf.values())):.3f} → {ws.masks}")
     return Done({"mean_confidence": float(np.mean(list(conf.values()))), "footprint": footprint,
-                 "saliency": sal is not None,
+                 "saliency": sal is not None, "salient_beyond": lost,
                  "floor_rounds_changed": [round(c, 6) for c in rounds]})
 

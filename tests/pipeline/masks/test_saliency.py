@@ -205,3 +205,106 @@ def test_inside_the_hull_the_salient_pixels_join_the_masks(monkeypatch):
     low[36:] = True
     floor, _, _ = stage.vote(imgs, seeds, [square] * 3, None, MasksConfig(), 1, 0.0, [low] * 3, sal=sal)
     assert all(np.array_equal(m, square) for m in floor)
+
+
+def test_beyond_share_counts_the_salient_pixels_past_the_mask_where_the_object_can_be():
+    mask = np.zeros((4, 6), bool)
+    mask[:, :2] = True  # 8 pixels
+    region = np.ones((4, 6), bool)
+    region[:, 5] = False
+    sal = np.zeros((4, 6), np.float32)
+    sal[:, :4] = 0.9  # columns 2 and 3: 8 salient pixels past the mask
+    sal[:, 5] = 1.0  # outside the region: not counted
+    sal[0, 4] = 0.4  # not salient
+    assert S.beyond_share(sal, mask, region) == 1.0
+    assert S.beyond_share(sal, mask, np.zeros_like(region)) == 0.0
+    assert S.beyond_share(sal, np.zeros_like(mask), region) == 16.0  # an empty mask: the count itself
+    ring = np.ones((5, 5), bool)
+    ring[2, 2] = False  # a hole the model fills (a torus's): not lost
+    assert S.beyond_share(np.ones((5, 5), np.float32), ring, np.ones((5, 5), bool)) == 0.0
+    with pytest.raises(ValueError, match="differ in shape"):
+        S.beyond_share(sal, mask[:3], region)
+
+
+def test_probe_views_spread_over_the_photos():
+    assert S.probe_views(3) == [0, 1, 2]
+    probes = S.probe_views(53)
+    assert len(probes) == S.PROBES and probes[0] == 0 and probes[-1] == 52 and probes == sorted(set(probes))
+    assert S.probe_views(0) == []
+
+
+def _stand_in_saliency(monkeypatch, names, imgs, truth):
+    """The salient-object model replaced by ``truth``, one salient mask per photo (looked up by the photo's pixels)."""
+    from pipeline.masks import stage
+
+    by_pixels = {img.tobytes(): m.astype(np.float32) for img, m in zip(imgs, truth)}
+    stand_in = lambda ims, path=None: [by_pixels[im.tobytes()] for im in ims]  # noqa: E731
+    monkeypatch.setattr(S, "saliency_maps", stand_in)
+    monkeypatch.setattr(stage, "saliency_maps", stand_in)
+
+
+def test_the_check_finds_masks_that_lose_part_of_the_object(scene, monkeypatch, capsys):
+    """Masks that lose the top of the object in every photo, where the model sees it: the check says so and asks for
+    the masks again; the true masks pass it, and so do masks that lose it in three of the eight photos looked at, and
+    the backdrop beside the object that six of them take (the hull of the views carves it); without the model file
+    nothing is checked, on one line."""
+    from pipeline.masks.stage import lost_to_saliency
+
+    ws, names, imgs, gt = scene
+    _stand_in_saliency(monkeypatch, names, imgs, gt)
+    ws.masks.mkdir(exist_ok=True)
+    cfg = Config().masks
+
+    def write(masks):
+        for n, m in zip(names, masks):
+            cv2.imwrite(str(ws.masks / f"{n}.png"), m.astype(np.uint8) * 255)
+
+    write(gt)
+    assert lost_to_saliency(ws, names, imgs, cfg) <= cfg.saliency_check
+    assert "0.0% of the masks' area" in capsys.readouterr().out
+    topless = []
+    for m in gt:
+        rows = np.nonzero(m.any(1))[0]
+        cut = m.copy()
+        cut[: (rows.min() + rows.max()) // 2] = False
+        topless.append(cut)
+    write(topless)
+    assert lost_to_saliency(ws, names, imgs, cfg) > cfg.saliency_check
+    assert "the masks again with its vote" in capsys.readouterr().out
+    few = set(S.probe_views(len(names))[:3])  # three of the eight photos looked at: one view's gaps, not a shared loss
+    write([t if i in few else m for i, (m, t) in enumerate(zip(gt, topless))])
+    assert lost_to_saliency(ws, names, imgs, cfg) <= cfg.saliency_check
+    capsys.readouterr()
+    salient_left = []  # in six of the eight photos the model takes the backdrop left of the object too
+    for i, m in enumerate(gt):
+        left = np.zeros_like(m)
+        left[:, : np.nonzero(m.any(0))[0].min()] = True
+        salient_left.append(m | (left & (i in set(S.probe_views(len(names))[2:]))))
+    write(gt)
+    shares = [S.beyond_share(f.astype(np.float32), m, np.ones_like(m)) for f, m in zip(salient_left, gt)]
+    assert np.percentile([shares[i] for i in S.probe_views(len(names))], 25) > 0.2  # the case: a share in most
+    _stand_in_saliency(monkeypatch, names, imgs, salient_left)
+    assert lost_to_saliency(ws, names, imgs, cfg) <= cfg.saliency_check  # the others see each left empty
+    assert "the masks again" not in capsys.readouterr().out
+    monkeypatch.setattr(S, "MODEL_PATH", ws.root / "absent.onnx")
+    assert lost_to_saliency(ws, names, imgs, cfg) is None
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "make setup" in err[0] and "not checked" in err[0]
+
+
+def test_the_stage_makes_the_masks_again_with_the_vote_when_the_check_asks(scene, monkeypatch, tmp_path):
+    """The masks stage runs the check after the geometry's masks; where it fires (a threshold below what the model
+    sees beyond them), the masks are made again with the model's vote and the stamp says so; 0 turns it off."""
+    from pipeline.stages import run_stage
+
+    ws, names, imgs, gt = scene
+    _stand_in_saliency(monkeypatch, names, imgs, gt)
+    used = {}
+    for check in (1e-6, 0.0):
+        out = Workspace(tmp_path / f"check={check}")
+        cfg = Config()
+        cfg.masks.stereo, cfg.masks.hull_res, cfg.masks.saliency_check = False, 64, check
+        run_stage("cameras", out, cfg, images=ws.images, given_cameras=ws.cameras)
+        run_stage("masks", out, cfg)
+        used[check] = out.stamp("masks")["saliency"]
+    assert used == {1e-6: True, 0.0: False}
