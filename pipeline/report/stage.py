@@ -200,7 +200,22 @@ def capture_section(ws: Workspace, cameras_stamp: dict) -> str:
     else:
         out.append("<li>no support plane: the object is not standing on a textured surface the SfM points show "
                    "(held, hung, or on a plain backdrop); masks and mesh as without one.</li>")
+    out += saliency_note(ws.stamp("masks") or {})
     return "".join(out) + "</ul>"
+
+
+def saliency_note(masks_stamp: dict) -> list[str]:
+    """The report's line on the salient-object model in the automatic masks, from the masks stage's stamp: the
+    share of the masks' area it saw beyond them (its check) and whether it voted; none for masks made without it."""
+    beyond, voted = masks_stamp.get("salient_beyond"), masks_stamp.get("saliency")
+    if beyond is None:
+        return ["<li>automatic masks made with the salient-object model's vote (masks.saliency).</li>"] if voted else []
+    seen = f"the salient-object model saw {100 * beyond:.1f} % of the first masks' area beyond them in three of four " \
+        "of the photos it looked at"
+    if voted:
+        return [f"<li>automatic masks made again with the salient-object model's vote: {seen}.</li>"]
+    return [f"<li>automatic masks checked against the salient-object model: {seen}; kept as the geometry made "
+            "them.</li>"]
 
 
 def appearance_choice(ws: Workspace) -> str:

@@ -126,6 +126,20 @@ def test_report_says_where_the_masks_footprint_came_from(tmp_path):
     assert not any("(True)" in s or "masks' hull)" in s for s in said.values())
 
 
+def test_report_says_what_the_salient_object_model_did_to_the_masks():
+    """The masks stage's stamp in words: made again with the model's vote (its check's share), checked and kept,
+    made with it on request; nothing for masks made without it (the user's, or the check off)."""
+    from pipeline.report.stage import saliency_note
+
+    again = saliency_note({"saliency": True, "salient_beyond": 0.129})
+    assert len(again) == 1 and "made again with the salient-object model's vote" in again[0] and "12.9 %" in again[0]
+    kept = saliency_note({"saliency": False, "salient_beyond": 0.007})
+    assert len(kept) == 1 and "checked" in kept[0] and "0.7 %" in kept[0] and "kept" in kept[0]
+    asked = saliency_note({"saliency": True, "salient_beyond": None})
+    assert len(asked) == 1 and "masks.saliency" in asked[0]
+    assert saliency_note({"saliency": False, "salient_beyond": None}) == [] and saliency_note({}) == []
+
+
 def test_stage_table_reads_as_words_and_keeps_the_raw_record():
     """A stage's row: numbers to four significant digits, nested records in brackets, long lists by their length,
     the text escaped; the full record as JSON in a folded element beside it, unchanged."""
