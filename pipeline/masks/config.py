@@ -64,7 +64,7 @@ class MasksConfig:
     footprint_union: bool = True
     """Hard background only beyond both the points' footprint and the hull's; off: beyond the points' alone."""
     saliency: bool = False
-    """Let a salient-object model vote in the masks (shiny or thin parts over a busy floor); the views' vote decides."""
+    """A salient-object model votes in the masks always (off: where saliency_check asks); the views' vote decides."""
     saliency_check: Fraction = 0.07
     """Redo the masks with saliency when its model sees more than this share of their area beyond them; 0: off."""
     speck_fraction: float = 0.001
