@@ -143,7 +143,7 @@ def beyond_share(sal: np.ndarray, mask: np.ndarray, region: np.ndarray) -> float
 
 def probe_views(n: int, k: int = PROBES) -> list[int]:
     """``k`` of ``n`` views' indices spread evenly in their order (all of them when ``n <= k``)."""
-    return sorted(set(np.linspace(0, n - 1, min(n, k)).round().astype(int).tolist())) if n else []
+    return np.linspace(0, n - 1, min(n, k)).round().astype(int).tolist()  # steps of at least 1: distinct, in order
 
 
 def saliency_maps(imgs: list[np.ndarray], path: Path | None = None) -> list[np.ndarray]:
