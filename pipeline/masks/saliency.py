@@ -152,20 +152,23 @@ def saliency_maps(imgs: list[np.ndarray], path: Path | None = None) -> list[np.n
     return [saliency(net, img) for img in imgs]
 
 
-def evidence(imgs: list[np.ndarray], path: Path | None = None) -> list[np.ndarray] | None:
-    """The masks stage's saliency maps of the BGR images ``imgs`` (:func:`saliency_maps`); None, with a one-line
-    warning naming the file and the fix, when the model file (:data:`MODEL_PATH` unless ``path``) is absent: the
-    masks then come from the geometry alone."""
+def evidence(imgs: list[np.ndarray], path: Path | None = None, known: dict[int, np.ndarray] | None = None
+             ) -> list[np.ndarray] | None:
+    """The masks stage's saliency maps of the BGR images ``imgs`` (:func:`saliency_maps`; ``known``: maps already
+    made, by index into ``imgs``, taken as they are); None, with a one-line warning naming the file and the fix, when
+    the model file (:data:`MODEL_PATH` unless ``path``) is absent: the masks then come from the geometry alone."""
     path = path or MODEL_PATH
     if not path.is_file():
         print(f"masks: warning: {missing_model_message(path)}; these masks use the geometry alone "
               "(--masks.saliency false says so without this warning)", file=sys.stderr)
         return None
+    known = known or {}
+    todo = [i for i in range(len(imgs)) if i not in known]
     t0 = time.perf_counter()
-    maps = saliency_maps(imgs, path)
-    print(f"masks: salient-object maps of {len(imgs)} photos in {time.perf_counter() - t0:.1f} s")
-    return maps
-
+    made = dict(zip(todo, saliency_maps([imgs[i] for i in todo], path)))
+    print(f"masks: salient-object maps of {len(todo)} photos in {time.perf_counter() - t0:.1f} s"
+          + (f" ({len(known)} more from the check)" if known else ""))
+    return [known[i] if i in known else made[i] for i in range(len(imgs))]
 
 if __name__ == "__main__":  # make setup: python -m pipeline.masks.saliency WHEEL
     if len(sys.argv) != 2:

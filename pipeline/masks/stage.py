@@ -35,6 +35,7 @@ import os
 import shutil
 import sys
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -396,19 +397,45 @@ def background_depths(cams: Cameras, pts_n: np.ndarray | None, obs: dict | None,
     return far
 
 
-def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig,
-               sal: list[np.ndarray] | None = None) -> tuple[dict, str | bool | None, list[float]]:
-    """Automatic masks of the BGR images ``imgs`` (module docstring: geometric and stereo seeds, GrabCut, multi-view
-    votes) into masks/; per name the confidence (IoU of the first GrabCut mask with the hull's silhouette), where
-    the object's footprint that seeded the floor came from: "sparse points", "masks' hull", False (none could be
-    built), None (no support plane, or the footprint off), and the fraction of the object's pixels each floor round
-    changed (:func:`vote`; none without a support plane)."""
+@dataclass
+class Geometry:
+    """What the automatic masks take from the cameras stage (:func:`geometry`), the same for every pass of a stage
+    run: the cameras, the sparse points (normalized frame) and each photo's observations of them (:func:`_tracks`),
+    the points no hull carves (:func:`kept_points`) and each photo's stereo labels (None when off)."""
+
+    cams: Cameras
+    pts_n: np.ndarray | None
+    obs: dict | None
+    keep: np.ndarray | None
+    stereo: list[np.ndarray] | None
+
+
+def geometry(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> Geometry:
+    """The :class:`Geometry` of the BGR images ``imgs`` (the stereo's plane sweep is most of its time)."""
     cams = load_cameras(ws.cameras, n_views=len(names))
     xyz, obs = _tracks(ws, names, cfg.seed_max_error)
     pts_n = None
     if xyz is not None and len(xyz):
         pts_n = to_normalized(xyz, cams.scale_mat, uniform=True)
-    keep = kept_points(pts_n, obs, cams, cfg.keep_min_views)
+    stereo = None
+    if cfg.stereo and len(names) >= 3:
+        stereo = stereo_seed_labels(evened_out(ws, names, imgs) if cfg.even_exposure else imgs, cams,
+                                    background_depths(cams, pts_n, obs, names), cfg.stereo_scale, cfg.stereo_depths,
+                                    cfg.stereo_ratio)
+    return Geometry(cams, pts_n, obs, kept_points(pts_n, obs, cams, cfg.keep_min_views), stereo)
+
+
+def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig,
+               sal: list[np.ndarray] | None = None, geo: Geometry | None = None
+               ) -> tuple[dict, str | bool | None, list[float]]:
+    """Automatic masks of the BGR images ``imgs`` (module docstring: geometric and stereo seeds, GrabCut, multi-view
+    votes) into masks/, from their :func:`geometry` (``geo`` when already computed); per name the confidence (IoU of
+    the first GrabCut mask with the hull's silhouette), where
+    the object's footprint that seeded the floor came from: "sparse points", "masks' hull", False (none could be
+    built), None (no support plane, or the footprint off), and the fraction of the object's pixels each floor round
+    changed (:func:`vote`; none without a support plane)."""
+    geo = geo or geometry(ws, names, imgs, cfg)
+    cams, pts_n, obs, keep, stereo = geo.cams, geo.pts_n, geo.obs, geo.keep, geo.stereo
     footprint, used = None, None
     if cams.ground is not None and cfg.footprint_margin >= 0:
         if pts_n is not None:
@@ -421,11 +448,6 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
                          else "no footprint"))
         used = footprint is not None and "sparse points"
     unite = bool(used) and cfg.footprint_union and cfg.footprint_hull_height > 0
-    stereo = None
-    if cfg.stereo and len(names) >= 3:
-        stereo = stereo_seed_labels(evened_out(ws, names, imgs) if cfg.even_exposure else imgs, cams,
-                                    background_depths(cams, pts_n, obs, names), cfg.stereo_scale, cfg.stereo_depths,
-                                    cfg.stereo_ratio)
     seeds = []
     spheres = [sphere_region(cams, i, img.shape[0], img.shape[1]) for i, img in enumerate(imgs)]
     for i, (n, img) in enumerate(zip(names, imgs)):
@@ -618,14 +640,16 @@ def write_overlays(ws: Workspace, names: list[str], imgs: list[np.ndarray], cams
         write_image(out / f"{n}.jpg", ov, [cv2.IMWRITE_JPEG_QUALITY, 90])
 
 
-def lost_to_saliency(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> float | None:
+def lost_to_saliency(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig
+                     ) -> tuple[float, dict[int, np.ndarray]] | None:
     """How much of the object the geometry's masks (masks/) lose by the salient-object model: in the visual hull of
     :data:`~pipeline.masks.saliency.PROBES` photos' masks joined by their salient pixels, the part the views agree
     on, beyond the masks' outlines, as a share of their area (:func:`~pipeline.masks.saliency.beyond_share`) in three
     of four photos (a shiny nozzle over a carpet it mirrors). A printed board that some photos' saliency takes, or
     the floor between a stool's legs seen from one side, is carved by the photos that see it empty. Said on a line
-    with what the stage does (more than ``cfg.saliency_check``: the masks again with the model's vote); None
-    without the model file (a warning)."""
+    with what the stage does (more than ``cfg.saliency_check``: the masks again with the model's vote). Returns the
+    share and the probe photos' saliency maps by index (the second pass reuses them); None without the model file
+    (a warning)."""
     if not model_installed():
         print(f"masks: warning: {missing_model_message()}; the masks are not checked against it", file=sys.stderr)
         return None
@@ -639,7 +663,7 @@ def lost_to_saliency(ws: Workspace, names: list[str], imgs: list[np.ndarray], cf
     print(f"masks: the salient-object model sees {share:.1%} of the masks' area beyond them in three of four of "
           f"{len(probes)} photos (masks.saliency-check {cfg.saliency_check:.0%})"
           + (": the masks again with its vote (masks.saliency)" if share > cfg.saliency_check else ""))
-    return share
+    return share, dict(zip(probes, sal))
 
 
 def run(job: Job) -> Done:
@@ -655,19 +679,20 @@ def run(job: Job) -> Done:
     if ws.masks.exists():
         shutil.rmtree(ws.masks)
     ws.masks.mkdir(parents=True)
-    footprint, sal, lost = None, None, None
+    footprint, sal, check = None, None, None
     if user is not None:
         for n, m in user.items():
             write_image(ws.masks / f"{n}.png", m.astype(np.uint8) * 255)
         conf, rounds = dict.fromkeys(user, 1.0), []
     else:
         sal = evidence(imgs) if cfg.saliency else None
-        conf, footprint, rounds = auto_masks(ws, names, imgs, cfg, sal)
+        geo = geometry(ws, names, imgs, cfg)
+        conf, footprint, rounds = auto_masks(ws, names, imgs, cfg, sal, geo)
         if sal is None and cfg.saliency_check > 0:
-            lost = lost_to_saliency(ws, names, imgs, cfg)
-        if lost is not None and lost > cfg.saliency_check:
-            sal = evidence(imgs)
-            conf, footprint, rounds = auto_masks(ws, names, imgs, cfg, sal)
+            check = lost_to_saliency(ws, names, imgs, cfg)
+        if check is not None and check[0] > cfg.saliency_check:
+            sal = evidence(imgs, known=check[1])
+            conf, footprint, rounds = auto_masks(ws, names, imgs, cfg, sal, geo)
     write_overlays(ws, names, imgs, load_cameras(ws.cameras, n_views=len(names)))
     write_json(ws.masks / "confidence.json", conf, indent=1)
     low = [n for n, c in conf.items() if c < 0.8]
@@ -676,6 +701,6 @@ def run(job: Job) -> Done:
               f"{ws.masks / 'overlays'}", file=sys.stderr)
     print(f"masks: {len(names)} masks, mean confidence {np.mean(list(conf.values())):.3f} → {ws.masks}")
     return Done({"mean_confidence": float(np.mean(list(conf.values()))), "footprint": footprint,
-                 "saliency": sal is not None, "salient_beyond": lost,
+                 "saliency": sal is not None, "salient_beyond": None if check is None else check[0],
                  "floor_rounds_changed": [round(c, 6) for c in rounds]})
 

@@ -260,7 +260,7 @@ def test_the_check_finds_masks_that_lose_part_of_the_object(scene, monkeypatch, 
             cv2.imwrite(str(ws.masks / f"{n}.png"), m.astype(np.uint8) * 255)
 
     write(gt)
-    assert lost_to_saliency(ws, names, imgs, cfg) <= cfg.saliency_check
+    assert lost_to_saliency(ws, names, imgs, cfg)[0] <= cfg.saliency_check
     assert "0.0% of the masks' area" in capsys.readouterr().out
     topless = []
     for m in gt:
@@ -269,11 +269,11 @@ def test_the_check_finds_masks_that_lose_part_of_the_object(scene, monkeypatch, 
         cut[: (rows.min() + rows.max()) // 2] = False
         topless.append(cut)
     write(topless)
-    assert lost_to_saliency(ws, names, imgs, cfg) > cfg.saliency_check
+    assert lost_to_saliency(ws, names, imgs, cfg)[0] > cfg.saliency_check
     assert "the masks again with its vote" in capsys.readouterr().out
     few = set(S.probe_views(len(names))[:3])  # three of the eight photos looked at: one view's gaps, not a shared loss
     write([t if i in few else m for i, (m, t) in enumerate(zip(gt, topless))])
-    assert lost_to_saliency(ws, names, imgs, cfg) <= cfg.saliency_check
+    assert lost_to_saliency(ws, names, imgs, cfg)[0] <= cfg.saliency_check
     capsys.readouterr()
     salient_left = []  # in six of the eight photos the model takes the backdrop left of the object too
     for i, m in enumerate(gt):
@@ -284,7 +284,7 @@ def test_the_check_finds_masks_that_lose_part_of_the_object(scene, monkeypatch, 
     shares = [S.beyond_share(f.astype(np.float32), m, np.ones_like(m)) for f, m in zip(salient_left, gt)]
     assert np.percentile([shares[i] for i in S.probe_views(len(names))], 25) > 0.2  # the case: a share in most
     _stand_in_saliency(monkeypatch, names, imgs, salient_left)
-    assert lost_to_saliency(ws, names, imgs, cfg) <= cfg.saliency_check  # the others see each left empty
+    assert lost_to_saliency(ws, names, imgs, cfg)[0] <= cfg.saliency_check  # the others see each left empty
     assert "the masks again" not in capsys.readouterr().out
     monkeypatch.setattr(S, "MODEL_PATH", ws.root / "absent.onnx")
     assert lost_to_saliency(ws, names, imgs, cfg) is None
@@ -308,3 +308,54 @@ def test_the_stage_makes_the_masks_again_with_the_vote_when_the_check_asks(scene
         run_stage("masks", out, cfg)
         used[check] = out.stamp("masks")["saliency"]
     assert used == {1e-6: True, 0.0: False}
+
+
+def test_the_second_pass_reuses_the_stereo_and_the_checks_maps(scene, monkeypatch, tmp_path):
+    """Where the check fires, the masks made again are those ``--masks.saliency`` makes, byte for byte, from the
+    first pass' stereo (swept once) and the check's saliency maps (each photo's map made once)."""
+    from pipeline.masks import stage
+    from pipeline.stages import run_stage
+
+    ws, names, imgs, gt = scene
+    _stand_in_saliency(monkeypatch, names, imgs, gt)
+    stand_in, sweep = stage.saliency_maps, stage.stereo_seed_labels
+    calls = {"maps": 0, "sweeps": 0}
+
+    def counted_maps(ims, path=None):
+        calls["maps"] += len(ims)
+        return stand_in(ims, path)
+
+    def counted_sweep(*a, **k):
+        calls["sweeps"] += 1
+        return sweep(*a, **k)
+
+    monkeypatch.setattr(S, "saliency_maps", counted_maps)
+    monkeypatch.setattr(stage, "saliency_maps", counted_maps)
+    monkeypatch.setattr(stage, "stereo_seed_labels", counted_sweep)
+    masks = {}
+    for arm, (always, check) in {"checked": (False, 1e-6), "always": (True, 0.0)}.items():
+        out = Workspace(tmp_path / arm)
+        cfg = Config()
+        cfg.masks.hull_res, cfg.masks.saliency, cfg.masks.saliency_check = 64, always, check
+        run_stage("cameras", out, cfg, images=ws.images, given_cameras=ws.cameras)
+        calls.update(maps=0, sweeps=0)
+        run_stage("masks", out, cfg)
+        assert out.stamp("masks")["saliency"]
+        assert calls == {"maps": len(names), "sweeps": 1}, arm
+        masks[arm] = [(out.masks / f"{n}.png").read_bytes() for n in names]
+    assert masks["checked"] == masks["always"]
+
+
+def test_known_maps_are_taken_as_they_are(monkeypatch, capsys):
+    img, _ = _disc_image()
+    made = []
+
+    def maps_of(ims, path=None):
+        made.extend(ims)
+        return [np.zeros(im.shape[:2]) for im in ims]
+
+    monkeypatch.setattr(S, "saliency_maps", maps_of)
+    known = {1: np.ones(img.shape[:2])}
+    maps = S.evidence([img, img, img], known=known)
+    assert len(made) == 2 and maps[1] is known[1] and not maps[0].any() and not maps[2].any()
+    assert "maps of 2 photos" in capsys.readouterr().out
