@@ -401,13 +401,15 @@ def background_depths(cams: Cameras, pts_n: np.ndarray | None, obs: dict | None,
 class Geometry:
     """What the automatic masks take from the cameras stage (:func:`geometry`), the same for every pass of a stage
     run: the cameras, the sparse points (normalized frame) and each photo's observations of them (:func:`_tracks`),
-    the points no hull carves (:func:`kept_points`) and each photo's stereo labels (None when off)."""
+    the points no hull carves (:func:`kept_points`), each photo's stereo labels (None when off) and its pixels whose
+    ray crosses the object's sphere (:func:`sphere_region`)."""
 
     cams: Cameras
     pts_n: np.ndarray | None
     obs: dict | None
     keep: np.ndarray | None
     stereo: list[np.ndarray] | None
+    spheres: list[np.ndarray]
 
 
 def geometry(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig) -> Geometry:
@@ -422,7 +424,8 @@ def geometry(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Masks
         stereo = stereo_seed_labels(evened_out(ws, names, imgs) if cfg.even_exposure else imgs, cams,
                                     background_depths(cams, pts_n, obs, names), cfg.stereo_scale, cfg.stereo_depths,
                                     cfg.stereo_ratio)
-    return Geometry(cams, pts_n, obs, kept_points(pts_n, obs, cams, cfg.keep_min_views), stereo)
+    spheres = [sphere_region(cams, i, img.shape[0], img.shape[1]) for i, img in enumerate(imgs)]
+    return Geometry(cams, pts_n, obs, kept_points(pts_n, obs, cams, cfg.keep_min_views), stereo, spheres)
 
 
 def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig,
@@ -435,7 +438,7 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
     built), None (no support plane, or the footprint off), and the fraction of the object's pixels each floor round
     changed (:func:`vote`; none without a support plane)."""
     geo = geo or geometry(ws, names, imgs, cfg)
-    cams, pts_n, obs, keep, stereo = geo.cams, geo.pts_n, geo.obs, geo.keep, geo.stereo
+    cams, pts_n, obs, keep, stereo, spheres = geo.cams, geo.pts_n, geo.obs, geo.keep, geo.stereo, geo.spheres
     footprint, used = None, None
     if cams.ground is not None and cfg.footprint_margin >= 0:
         if pts_n is not None:
@@ -449,7 +452,6 @@ def auto_masks(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: Mas
         used = footprint is not None and "sparse points"
     unite = bool(used) and cfg.footprint_union and cfg.footprint_hull_height > 0
     seeds = []
-    spheres = [sphere_region(cams, i, img.shape[0], img.shape[1]) for i, img in enumerate(imgs)]
     for i, (n, img) in enumerate(zip(names, imgs)):
         h, w = img.shape[:2]
         lab = seed_labels(cams, i, h, w, pts_n, obs.get(n) if obs else None, cfg.seed_radius,
