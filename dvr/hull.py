@@ -210,19 +210,26 @@ def settled_onto_plane(inside: np.ndarray, ground: np.ndarray, height: float) ->
     return out
 
 
-def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, slope_cells: float = 1.0, clamp: float = 10.0,
-                keep: np.ndarray | None = None, settle: float = 0.0, **rules) -> torch.Tensor:
-    """Logit volume (res+1)³ [x, y, z] of the visual hull (:func:`hull_inside`, :func:`inside_logits`; ``rules``:
-    :func:`outside_hull`'s keyword arguments); points outside the unit sphere (or below the support plane
-    ``ground``) are free, except the cells holding the points ``keep`` (M, 3), which stay inside whatever the masks
-    say (:func:`lattice_corners`); with a ``ground`` plane and ``settle`` > 0, the hull's parts lower than that
-    rest on it (:func:`settled_onto_plane`). Returns a float32 tensor on masks' device."""
+def hull_lattice(P: torch.Tensor, masks: torch.Tensor, res: int = 96, keep: np.ndarray | None = None,
+                 settle: float = 0.0, **rules) -> np.ndarray:
+    """(res+1)³ bool lattice [x, y, z] of the visual hull (:func:`hull_inside`; ``rules``: :func:`outside_hull`'s
+    keyword arguments); points outside the unit sphere (or below the support plane ``ground``) are free, except the
+    cells holding the points ``keep`` (M, 3), which stay inside whatever the masks say (:func:`lattice_corners`);
+    with a ``ground`` plane and ``settle`` > 0, the hull's parts lower than that rest on it
+    (:func:`settled_onto_plane`)."""
     inside = hull_inside(P, masks, res, **rules)
     if settle > 0 and rules.get("ground") is not None:
         inside = settled_onto_plane(inside, rules["ground"], settle)
     if keep is not None and len(keep):
         inside[lattice_corners(keep, res)] = True
-    return inside_logits(inside, slope_cells, clamp, device=masks.device)
+    return inside
+
+
+def hull_logits(P: torch.Tensor, masks: torch.Tensor, res: int = 96, slope_cells: float = 1.0, clamp: float = 10.0,
+                keep: np.ndarray | None = None, settle: float = 0.0, **rules) -> torch.Tensor:
+    """Logit volume (res+1)³ [x, y, z] of the visual hull (:func:`inside_logits` of :func:`hull_lattice`, which
+    takes ``keep``, ``settle`` and the carving ``rules``). Returns a float32 tensor on masks' device."""
+    return inside_logits(hull_lattice(P, masks, res, keep, settle, **rules), slope_cells, clamp, device=masks.device)
 
 
 def hull_bounding_sphere(P: torch.Tensor, masks: torch.Tensor, res: int = 64, margin: float = 1.1,

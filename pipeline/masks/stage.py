@@ -45,7 +45,7 @@ import torch
 from dvr.atomic import write_image, write_json
 from dvr.cameras import Cameras, load_cameras, plane_height, project_points, sphere_bounds, to_normalized
 from dvr.data import list_images, pad_stack, read_mask
-from dvr.hull import grid_points, hull_logits, mask_lookup, near_object
+from dvr.hull import grid_points, hull_lattice, mask_lookup, near_object
 from pipeline.errors import StageError
 from pipeline.masks.config import MasksConfig
 from pipeline.masks.saliency import (
@@ -304,16 +304,18 @@ def kept_points(pts_n: np.ndarray | None, obs: dict | None, cams: Cameras, min_v
 def visual_hull(masks: list[np.ndarray], cams: Cameras, res: int, min_views: int,
                 min_fraction: float = 0.0, keep: np.ndarray | None = None, settle: float = 0.0,
                 fraction_px: float = 0.0) -> torch.Tensor:
-    """:func:`dvr.hull.hull_logits` of ``masks`` (one bool array per view, each its own size; carving with
-    ``min_views`` and ``min_fraction``, the fraction only within ``fraction_px`` of a mask when > 0; nothing below the
-    support plane); the cells holding the points ``keep``
-    (:func:`kept_points`) stay inside, and its parts lower than ``settle`` above the support plane rest on it
-    (:func:`dvr.hull.settled_onto_plane`)."""
+    """The visual hull of ``masks`` (one bool array per view, each its own size; carving with ``min_views`` and
+    ``min_fraction``, the fraction only within ``fraction_px`` of a mask when > 0; nothing below the support plane) as
+    a (res+1)³ float32 volume, 1 inside and -1 outside (:func:`dvr.hull.hull_lattice`); the cells holding the points
+    ``keep`` (:func:`kept_points`) stay inside, and its parts lower than ``settle`` above the support plane rest on it
+    (:func:`dvr.hull.settled_onto_plane`). Its zero level is that of :func:`dvr.hull.hull_logits`, whose lattice
+    points on either side of the surface hold ±1 too, without the distance transforms."""
     canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
     near = near_object(canvas, fraction_px) if fraction_px > 0 and min_fraction > 0 else None
-    return hull_logits(torch.from_numpy(cams.P).float(), canvas, res=res, min_views=min_views,
-                       min_fraction=min_fraction, slope_cells=1.0, ground=cams.ground, sizes=sizes,
-                       keep=keep, settle=settle, fraction_near=near)
+    inside = hull_lattice(torch.from_numpy(cams.P).float(), canvas, res=res, keep=keep, settle=settle,
+                          min_views=min_views, min_fraction=min_fraction, ground=cams.ground, sizes=sizes,
+                          fraction_near=near)
+    return torch.from_numpy(np.where(inside, 1.0, -1.0).astype(np.float32))
 
 
 def carved_hull(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, keep: np.ndarray | None = None
@@ -325,18 +327,18 @@ def carved_hull(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, keep: 
 
 
 @torch.no_grad()
-def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, logits: torch.Tensor) -> list[np.ndarray]:
-    """Render a visual hull (its ``logits``, :func:`visual_hull`) into every view, each at its mask's size in
+def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, volume: torch.Tensor) -> list[np.ndarray]:
+    """Render a visual hull (its ``volume``, :func:`visual_hull`) into every view, each at its mask's size in
     ``masks``: one bool array per view.
 
-    The hull's logit volume becomes a mesh (marching cubes) and the ray of every pixel centre in the box of its
+    The volume's zero level becomes a mesh (marching cubes) and the ray of every pixel centre in the box of its
     projection is cast against it (:meth:`pipeline.render.raycast.MeshCaster.covered_pixels`), far faster than
     marching the volume along every ray.
     """
     import trimesh
     from skimage import measure
 
-    lg = logits.cpu().numpy()
+    lg = volume.cpu().numpy()
     if lg.max() <= 0 or lg.min() > 0:
         return [np.full(m.shape, lg.min() > 0) for m in masks]
     v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / (lg.shape[0] - 1),) * 3)
@@ -346,9 +348,9 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, logits: torch.Tenso
             for i, (H, W) in enumerate(m.shape for m in masks)]
 
 
-def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, logits: torch.Tensor | None = None):
+def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, volume: torch.Tensor | None = None):
     """:func:`pipeline.scene.support.footprint_prism` of the visual hull of ``masks`` (carving with ``carve_min_views``;
-    its :func:`visual_hull` ``logits`` when already built):
+    its :func:`visual_hull` ``volume`` when already built):
     the hull's grid cells more than ``footprint_hull_height`` above the support plane stand for the object's
     points, where at least :data:`FOOTPRINT_IN_FRAME` of the views have them in frame (elsewhere, near the
     sphere's edge, few views carve). A ring of table that every mask took lies flat on the plane, and the low
@@ -358,7 +360,7 @@ def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, log
     canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
     P = torch.from_numpy(cams.P)
     lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction,
-                     fraction_px=cfg.carve_fraction_px) if logits is None else logits
+                     fraction_px=cfg.carve_fraction_px) if volume is None else volume
     cells = grid_points(cfg.hull_res, dtype=torch.float64)[lg.reshape(-1).cpu() > 0]
     _, seen = mask_lookup(cells, P, canvas, sizes)  # in front of the camera and inside its own image
     # the hull is only carved where the views see

@@ -1,5 +1,5 @@
 """The sparse points no visual hull of the masks carves (pipeline/masks/stage.py ``kept_points``, ``visual_hull``,
-through dvr/hull.py ``hull_logits``' ``keep``): two masks that miss the base of a box carve it from the hull in every
+through dvr/hull.py ``hull_lattice``'s ``keep``): two masks that miss the base of a box carve it from the hull in every
 view; the points SfM triangulated on that base hold it."""
 
 import numpy as np
@@ -66,3 +66,23 @@ def test_kept_points_are_the_objects_seen_by_enough_views():
     assert stage.kept_points(None, None, cams, 3) is None
     assert stage.kept_points(pts, {"a": [], "b": []}, cams, 1) is None
 
+
+
+def test_the_masks_hull_volume_has_the_zero_level_of_the_hull_logits():
+    """The masks stage's ±1 hull volume and dvr's distance-transform logits of the same hull give the same marching
+    cubes surface, so the same silhouette in every view, pixel for pixel."""
+    import torch
+
+    from dvr.data import pad_stack
+    from dvr.hull import hull_logits
+
+    cams, masks = _masks_missing_the_base()
+    volume = stage.visual_hull(masks, cams, RES, 2)
+    assert set(np.unique(volume.numpy())) == {-1.0, 1.0}
+    canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
+    logits = hull_logits(torch.from_numpy(cams.P).float(), canvas, res=RES, min_views=2, min_fraction=0.0,
+                         ground=cams.ground, sizes=sizes)
+    assert np.array_equal(volume.numpy() > 0, logits.numpy() > 0)
+    assert np.abs(logits.numpy()).max() > 1.0  # the logits grow away from the surface; the volume does not
+    for a, b in zip(stage.hull_silhouettes(masks, cams, volume), stage.hull_silhouettes(masks, cams, logits)):
+        assert np.array_equal(a, b)

@@ -1,5 +1,5 @@
 """The masks' hull resting on the support plane (pipeline/masks/stage.py ``visual_hull``'s ``settle``, through
-dvr/hull.py ``hull_logits`` and ``settled_onto_plane``): masks that all miss the lowest band of a box standing on
+dvr/hull.py ``hull_lattice`` and ``settled_onto_plane``): masks that all miss the lowest band of a box standing on
 the floor (a shiny object's base mirrors the floor, and every view's GrabCut gives it to the floor) float its hull
 above the floor; settled, the hull reaches it, while a box held higher keeps the space under it free."""
 
