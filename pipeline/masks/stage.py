@@ -644,13 +644,14 @@ def write_overlays(ws: Workspace, names: list[str], imgs: list[np.ndarray], cams
         write_image(out / f"{n}.jpg", ov, [cv2.IMWRITE_JPEG_QUALITY, 90])
 
 
-def lost_to_saliency(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig
+def lost_to_saliency(ws: Workspace, names: list[str], imgs: list[np.ndarray], cfg: MasksConfig, geo: Geometry
                      ) -> tuple[float, dict[int, np.ndarray]] | None:
     """How much of the object the geometry's masks (masks/) lose by the salient-object model: in the visual hull of
     :data:`~pipeline.masks.saliency.PROBES` photos' masks joined by their salient pixels, the part the views agree
     on, beyond the masks' outlines, as a share of their area (:func:`~pipeline.masks.saliency.beyond_share`) in three
     of four photos (a shiny nozzle over a carpet it mirrors). A printed board that some photos' saliency takes, or
-    the floor between a stool's legs seen from one side, is carved by the photos that see it empty. Said on a line
+    the floor between a stool's legs seen from one side, is carved by the photos that see it empty (the cameras and
+    the sphere regions from the masks' :func:`geometry` ``geo``). Said on a line
     with what the stage does (more than ``cfg.saliency_check``: the masks again with the model's vote). Returns the
     share and the probe photos' saliency maps by index (the second pass reuses them); None without the model file
     (a warning)."""
@@ -658,10 +659,10 @@ def lost_to_saliency(ws: Workspace, names: list[str], imgs: list[np.ndarray], cf
         print(f"masks: warning: {missing_model_message()}; the masks are not checked against it", file=sys.stderr)
         return None
     probes = probe_views(len(names))
-    cams = load_cameras(ws.cameras, n_views=len(names)).subset(probes)
+    cams = geo.cams.subset(probes)
     masks = [read_mask(ws.masks / f"{names[i]}.png") > 0.5 for i in probes]
     sal = saliency_maps([imgs[i] for i in probes])
-    salient = [(s >= SALIENT) & sphere_region(cams, k, *m.shape) for k, (s, m) in enumerate(zip(sal, masks))]
+    salient = [(s >= SALIENT) & geo.spheres[i] for i, s in zip(probes, sal)]
     sil = hull_silhouettes(masks, cams, carved_hull(with_salient(masks, salient), cams, cfg))
     share = float(np.percentile([beyond_share(s, m, w) for s, m, w in zip(sal, masks, sil)], 25))
     print(f"masks: the salient-object model sees {share:.1%} of the masks' area beyond them in three of four of "
@@ -693,7 +694,7 @@ def run(job: Job) -> Done:
         geo = geometry(ws, names, imgs, cfg)
         conf, footprint, rounds = auto_masks(ws, names, imgs, cfg, sal, geo)
         if sal is None and cfg.saliency_check > 0:
-            check = lost_to_saliency(ws, names, imgs, cfg)
+            check = lost_to_saliency(ws, names, imgs, cfg, geo)
         if check is not None and check[0] > cfg.saliency_check:
             sal = evidence(imgs, known=check[1])
             conf, footprint, rounds = auto_masks(ws, names, imgs, cfg, sal, geo)

@@ -248,19 +248,20 @@ def test_the_check_finds_masks_that_lose_part_of_the_object(scene, monkeypatch, 
     the masks again; the true masks pass it, and so do masks that lose it in three of the eight photos looked at, and
     the backdrop beside the object that six of them take (the hull of the views carves it); without the model file
     nothing is checked, on one line."""
-    from pipeline.masks.stage import lost_to_saliency
+    from pipeline.masks.stage import geometry, lost_to_saliency
 
     ws, names, imgs, gt = scene
     _stand_in_saliency(monkeypatch, names, imgs, gt)
     ws.masks.mkdir(exist_ok=True)
     cfg = Config().masks
+    geo = geometry(ws, names, imgs, cfg)
 
     def write(masks):
         for n, m in zip(names, masks):
             cv2.imwrite(str(ws.masks / f"{n}.png"), m.astype(np.uint8) * 255)
 
     write(gt)
-    assert lost_to_saliency(ws, names, imgs, cfg)[0] <= cfg.saliency_check
+    assert lost_to_saliency(ws, names, imgs, cfg, geo)[0] <= cfg.saliency_check
     assert "0.0% of the masks' area" in capsys.readouterr().out
     topless = []
     for m in gt:
@@ -269,11 +270,11 @@ def test_the_check_finds_masks_that_lose_part_of_the_object(scene, monkeypatch, 
         cut[: (rows.min() + rows.max()) // 2] = False
         topless.append(cut)
     write(topless)
-    assert lost_to_saliency(ws, names, imgs, cfg)[0] > cfg.saliency_check
+    assert lost_to_saliency(ws, names, imgs, cfg, geo)[0] > cfg.saliency_check
     assert "the masks again with its vote" in capsys.readouterr().out
     few = set(S.probe_views(len(names))[:3])  # three of the eight photos looked at: one view's gaps, not a shared loss
     write([t if i in few else m for i, (m, t) in enumerate(zip(gt, topless))])
-    assert lost_to_saliency(ws, names, imgs, cfg)[0] <= cfg.saliency_check
+    assert lost_to_saliency(ws, names, imgs, cfg, geo)[0] <= cfg.saliency_check
     capsys.readouterr()
     salient_left = []  # in six of the eight photos the model takes the backdrop left of the object too
     for i, m in enumerate(gt):
@@ -284,10 +285,10 @@ def test_the_check_finds_masks_that_lose_part_of_the_object(scene, monkeypatch, 
     shares = [S.beyond_share(f.astype(np.float32), m, np.ones_like(m)) for f, m in zip(salient_left, gt)]
     assert np.percentile([shares[i] for i in S.probe_views(len(names))], 25) > 0.2  # the case: a share in most
     _stand_in_saliency(monkeypatch, names, imgs, salient_left)
-    assert lost_to_saliency(ws, names, imgs, cfg)[0] <= cfg.saliency_check  # the others see each left empty
+    assert lost_to_saliency(ws, names, imgs, cfg, geo)[0] <= cfg.saliency_check  # the others see each left empty
     assert "the masks again" not in capsys.readouterr().out
     monkeypatch.setattr(S, "MODEL_PATH", ws.root / "absent.onnx")
-    assert lost_to_saliency(ws, names, imgs, cfg) is None
+    assert lost_to_saliency(ws, names, imgs, cfg, geo) is None
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "make setup" in err[0] and "not checked" in err[0]
 
